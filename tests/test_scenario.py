@@ -1,0 +1,207 @@
+import copy
+import json
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import yaml
+from jaxloc._camera import OmniCamera, PinholeCamera
+from jaxloc._presets import paper_ptz_camera
+from jaxloc._scenario import (
+    astype,
+    load_scenario,
+    save_scenario,
+    Scenario,
+    scenario_from_dict,
+    scenario_to_dict,
+)
+from jaxloc._world import FlatSurface, FunctionSurface, SaddleSurface, SinusoidSurface
+
+
+def _custom():
+    return Scenario.paper(
+        "concurrent",
+        ground=SaddleSurface(radius_x=-5.5, radius_y=9.25, height=0.1),
+        ceiling=SinusoidSurface(height=3.1, amplitude=0.2, period=7.0, phase=0.3),
+        base=2.2,
+        side=1.7,
+        headings=(0.1, -0.2, 0.3),
+        overhead_xy=(0.05, -0.1),
+        overhead_heading=1.4,
+        overhead=PinholeCamera(650.5, 651.25, 320.1, 240.2, (0.01, -0.02, 1e-4, 2e-4, 0.003)),
+        ptz=paper_ptz_camera(pan=0.1, tilt=-0.05, zoom=0.2),
+        omni3=OmniCamera(0.9, 180.0, 181.0, 318.0, 241.0, skew=0.1),
+        move_mean=0.7,
+        move_std=0.15,
+        move_candidates=16,
+        min_separation=0.3,
+        pixel_sigma=1.5,
+        noise_model="gaussian",
+        odometry_sigma_rel=0.02,
+        require_omni=False,
+    )
+
+
+def test_paper_defaults():
+    s = Scenario.paper()
+    assert s.strategy == "sequential" and s.noise_model == "paper"
+    assert isinstance(s.ground, SaddleSurface) and isinstance(s.ceiling, SinusoidSurface)
+    assert float(s.ground.radius_x) == -8.0 and float(s.ground.radius_y) == 8.0
+    assert float(s.ceiling.z0) == 3.5 and float(s.ceiling.period) == 10.0
+    assert float(s.ceiling.amplitude) == 0.25
+    assert float(s.overhead_heading) == pytest.approx(math.pi / 2)
+    assert s.move_candidates == 32 and float(s.pixel_sigma) == 2.0
+    assert float(s.move_mean) == 0.8 and float(s.move_std) == 0.2
+    assert float(s.odometry_sigma_rel) == 0.01
+    xy = s.formation_xy()
+    np.testing.assert_allclose(xy[0, 0], -math.sqrt(1.25))
+    flat = Scenario.flat_floor("concurrent")
+    assert isinstance(flat.ground, FlatSurface) and float(flat.ceiling.z0) == 2.95
+    assert flat.strategy == "concurrent"
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".yml", ".json"])
+@pytest.mark.parametrize("make", [Scenario.paper, Scenario.flat_floor, _custom])
+def test_file_round_trip(tmp_path, suffix, make):
+    s = make()
+    path = tmp_path / f"scenario{suffix}"
+    save_scenario(s, path)
+    s2 = load_scenario(path)
+    assert bool(eqx.tree_equal(s, s2, typematch=True))
+    assert scenario_to_dict(s2) == scenario_to_dict(s)
+    if suffix == ".json":
+        json.loads(path.read_text())
+
+
+def test_presets_and_defaults_in_files(tmp_path):
+    text = """
+strategy: concurrent
+ground: {type: flat, height: 0}
+ceiling: {type: flat, height: 3}
+cameras:
+  overhead: paper_overhead
+  ptz: {preset: paper_ptz, pan: 0.25}
+  omni2: {preset: paper_omni}
+"""
+    path = tmp_path / "s.yaml"
+    path.write_text(text)
+    s = load_scenario(path)
+    assert s.strategy == "concurrent" and float(s.ceiling.z0) == 3.0
+    assert float(s.ptz.pan) == 0.25
+    ref = Scenario.paper("concurrent", ground=FlatSurface(0.0), ceiling=FlatSurface(3.0),
+                         ptz=paper_ptz_camera(pan=0.25))
+    assert bool(eqx.tree_equal(s, ref))
+    (tmp_path / "empty.yaml").write_text("")
+    assert bool(eqx.tree_equal(load_scenario(tmp_path / "empty.yaml"), Scenario.paper()))
+
+
+def _set(d, path, value):
+    d = copy.deepcopy(d)
+    *head, last = path.split(".")
+    node = d
+    for k in head:
+        node = node[k]
+    if value is _DELETE:
+        del node[last]
+    else:
+        node[last] = value
+    return d
+
+
+_DELETE = object()
+
+BAD = [
+    ("bogus", 1, r"Unknown key `bogus` in the scenario"),
+    ("ground.bogus", 1.0, r"Unknown key `bogus` in `ground`"),
+    ("cameras.omni2.bogus", 1.0, r"Unknown key `bogus` in `cameras.omni2`"),
+    ("cameras.bogus", "paper_omni", r"Unknown key `bogus` in `cameras`"),
+    ("strategy", "random", r"`strategy` must be one of .*'random'"),
+    ("noise_model", "laplace", r"`noise_model` must be one of .*'laplace'"),
+    ("ground.type", "torus", r"`ground.type` must be one of .*'torus'"),
+    ("ground", "saddle", r"`ground` must be a mapping with a `type`"),
+    ("ceiling.period", -1.0, r"`ceiling.period` must be positive; got -1.0"),
+    ("ground.radius_x", 0.0, r"`ground.radius_x` must be nonzero"),
+    ("ground.radius_y", "8", r"`ground.radius_y` must be a number; got '8'"),
+    ("pixel_sigma", -2.0, r"`Scenario\(pixel_sigma=...\)` must be nonnegative; got -2.0"),
+    ("move_std", -0.1, r"`Scenario\(move_std=...\)` must be nonnegative; got -0.1"),
+    ("odometry_sigma_rel", -0.01, r"odometry_sigma_rel=...\)` must be nonnegative"),
+    ("move_mean", 0.0, r"`Scenario\(move_mean=...\)` must be positive; got 0.0"),
+    ("base", -2.0, r"`Scenario\(base=...\)` must be positive; got -2.0"),
+    ("side", 0.9, r"`Scenario\(side=...\)` must exceed `base / 2`"),
+    ("pixel_sigma", True, r"`pixel_sigma` must be a number; got True"),
+    ("pixel_sigma", float("nan"), r"`pixel_sigma` must be finite; got nan"),
+    ("headings", [0.0, 0.0], r"`headings` must be a list of 3 numbers; got \[0.0, 0.0\]"),
+    ("overhead_xy", "0 0", r"`overhead_xy` must be a list of 2 numbers"),
+    ("move_candidates", 0, r"`move_candidates` must be a positive integer; got 0"),
+    ("move_candidates", 2.5, r"`move_candidates` must be a positive integer; got 2.5"),
+    ("require_ptz", "yes", r"`require_ptz` must be true or false; got 'yes'"),
+    ("cameras.ptz", "paper_omni", r"`cameras.ptz.type` must be 'ptz' for the `ptz` camera"),
+    ("cameras.ptz", "wide_angle", r"`cameras.ptz.preset` must be one of .*'wide_angle'"),
+    ("cameras.overhead.type", "fisheye", r"`cameras.overhead.type` must be one of .*fisheye"),
+    ("cameras.overhead.fx", -600.0, r"`cameras.overhead` is invalid: .*fx.*-600"),
+    ("cameras.overhead.dist", [0.0, 1.0], r"`cameras.overhead` is invalid: .*dist"),
+    ("cameras.overhead.image_size", [640], r"`cameras.overhead.image_size` must be two"),
+    ("cameras.ptz.zoom", 1.5, r"`cameras.ptz` is invalid: .*zoom.*1.5"),
+    ("cameras.omni3", 3, r"`cameras.omni3` must be a preset name or a mapping; got 3"),
+]
+
+
+@pytest.mark.parametrize("path,value,match", BAD)
+def test_validation_errors(path, value, match):
+    d = scenario_to_dict(Scenario.paper())
+    with pytest.raises(ValueError, match=match):
+        scenario_from_dict(_set(d, path, value))
+
+
+def test_validation_errors_files(tmp_path):
+    with pytest.raises(ValueError, match="must be a mapping"):
+        scenario_from_dict([1, 2])
+    (tmp_path / "bad.yaml").write_text("strategy: [unclosed\n")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_scenario(tmp_path / "bad.yaml")
+    (tmp_path / "bad.json").write_text("{")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_scenario(tmp_path / "bad.json")
+    # yaml.safe_load refuses arbitrary Python objects.
+    (tmp_path / "evil.yaml").write_text("strategy: !!python/object/apply:os.system ['true']\n")
+    with pytest.raises(ValueError, match="not valid YAML"):
+        load_scenario(tmp_path / "evil.yaml")
+    s = Scenario.paper(ground=FunctionSurface(lambda x, y: 0.0 * x))
+    with pytest.raises(ValueError, match="`ground` is a FunctionSurface"):
+        save_scenario(s, tmp_path / "f.yaml")
+
+
+def test_constructor_errors():
+    with pytest.raises(ValueError, match=r"`Scenario\(strategy=...\)` must be one of"):
+        Scenario.paper("zigzag")
+    with pytest.raises(ValueError, match=r"`Scenario\(headings=...\)` must have shape \(3,\)"):
+        Scenario.paper(headings=(0.0, 0.0))
+    with pytest.raises(ValueError, match=r"`Scenario\(ptz=...\)` must be a PTZCamera"):
+        Scenario.paper(ptz=PinholeCamera(500.0, 500.0, 320.0, 240.0))
+    with pytest.raises(ValueError, match=r"`Scenario\(move_candidates=...\)`"):
+        Scenario.paper(move_candidates=True)
+    with pytest.raises(ValueError, match=r"`Scenario\(pixel_sigma=...\)` must be nonneg"):
+        Scenario.paper(pixel_sigma=-1.0)
+    # A YAML file with only a wrong value names the field.
+    with pytest.raises(ValueError, match="pixel_sigma"):
+        scenario_from_dict(yaml.safe_load("pixel_sigma: -3"))
+
+
+def test_astype_float32():
+    s = astype(Scenario.paper(), jnp.float32)
+    leaves = [x for x in jax.tree.leaves(s) if eqx.is_array(x)]
+    assert leaves and all(x.dtype == jnp.float32 for x in leaves)
+    assert s.strategy == "sequential" and s.overhead.image_size == (640, 480)
+    back = astype(s, jnp.float64)
+    assert all(x.dtype == jnp.float64 for x in jax.tree.leaves(back) if eqx.is_array(x))
+
+
+def test_scenario_is_a_pytree_for_vmap():
+    s = Scenario.paper()
+    bases = jnp.array([1.8, 2.0, 2.2])
+    out = jax.vmap(lambda b: eqx.tree_at(lambda t: t.base, s, b).formation_xy())(bases)
+    assert out.shape == (3, 3, 2)
+    np.testing.assert_allclose(out[:, 1, 1], bases / 2)
