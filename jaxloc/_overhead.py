@@ -87,7 +87,8 @@ def _polish(pose: jaxlie.SE3, X, b, w, steps: int) -> jaxlie.SE3:
         H = H + 1e-9 * jnp.diag(jnp.diag(H)) + jnp.finfo(dtype).eps * jnp.eye(6, dtype=dtype)
         delta, ok = _cholesky_solve6(H, -(J.T @ r))
         delta = jnp.where(ok & jnp.all(jnp.isfinite(delta)), delta, 0.0)
-        new = jaxlie.manifold.rplus(pose, delta)
+        # jaxlie's exp returns float64 under x64 even for float32 input: cast back.
+        new = jaxlie.SE3(wxyz_xyz=jaxlie.manifold.rplus(pose, delta).wxyz_xyz.astype(dtype))
         r_new = _chordal_residuals(new, X, b, w)
         better = jnp.sum(r_new * r_new) < jnp.sum(r * r)
         return jnp.where(better, new.wxyz_xyz, params)
@@ -105,8 +106,8 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
     nonfinite = jnp.any(mask & ~finite)
     use = mask & finite
     X = jnp.where(use[:, None], X, 0.0)
-    b = _normalize_rows(jnp.where(use[:, None], bw, jnp.array([0.0, 0.0, 1.0], dtype=dtype)))
-    b = jnp.where(use[:, None], b, jnp.array([0.0, 0.0, 1.0], dtype=dtype))
+    b = _normalize_rows(jnp.where(use[:, None], bw, jnp.array([[0.0, 0.0, 1.0]], dtype=dtype)))
+    b = jnp.where(use[:, None], b, jnp.array([[0.0, 0.0, 1.0]], dtype=dtype))
     w = use.astype(dtype)
 
     # All C(n, 3) triplets, enumerated at trace time.
@@ -126,7 +127,9 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
     thr = 1e-2 * jnp.sqrt(eps)
     noncollinear = area2 > (thr * longest) ** 2
     tri_ok = jnp.all(use[tri], axis=1) & noncollinear
-    sols = jax.vmap(p3p)(Xt, bt)
+    # Candidate search without gradients; the chosen triplet is re-solved below so that
+    # `grad` only differentiates one P3P (a much smaller backward graph).
+    sols = jax.vmap(p3p)(jax.lax.stop_gradient(Xt), jax.lax.stop_gradient(bt))
     params = sols.poses.wxyz_xyz.reshape(-1, 7)
     cand_ok = (sols.valid & tri_ok[:, None]).reshape(-1)
 
@@ -137,12 +140,14 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
         in_front = jnp.sum(q * b, axis=-1) > 0
         return jnp.sum(w * chord2), jnp.all(in_front | ~use)
 
-    costs, front_ok = jax.vmap(score)(jax.lax.stop_gradient(params))
+    costs, front_ok = jax.vmap(score)(params)
     good = cand_ok & front_ok & jnp.isfinite(costs)
     costs = jnp.where(good, costs, jnp.inf)
     best = jnp.argmin(costs)
     num_valid = jnp.sum(good).astype(jnp.int32)
-    pose = jaxlie.SE3(wxyz_xyz=params[best])
+    best_tri = jnp.asarray(tri)[best // 4]
+    chosen = p3p(X[best_tri], b[best_tri])
+    pose = jaxlie.SE3(wxyz_xyz=chosen.poses.wxyz_xyz[best % 4])
     pose = _polish(pose, X, b, w, _POLISH_STEPS)
 
     planarity, collinearity = point_spread(X, use)

@@ -90,7 +90,7 @@ def point_spread(
     w = mask.astype(P.dtype)
     count = jnp.maximum(jnp.sum(w), 1.0)
     c = jnp.sum(w[:, None] * P, axis=0) / count
-    Q = (P - c) * w[:, None]
+    Q = (P - c[None]) * w[:, None]
     ev = jnp.clip(_sym_eigvals3(Q.T @ Q / count), 0.0, None)
     ok = ev[0] > 0
     e0 = jnp.where(ok, ev[0], 1.0)
@@ -208,7 +208,7 @@ def paper_linear_pose(
     front = bw[:, 2] > 1e-6
     use = mask & finite & front
     X = jnp.where(use[:, None], X, 0.0)
-    bw = jnp.where(use[:, None], bw, jnp.array([0.0, 0.0, 1.0], dtype=dtype))
+    bw = jnp.where(use[:, None], bw, jnp.array([[0.0, 0.0, 1.0]], dtype=dtype))
     w = use.astype(dtype)
     count = jnp.sum(w)
     safe_count = jnp.maximum(count, 1.0)
@@ -216,13 +216,13 @@ def paper_linear_pose(
 
     # Hartley normalization.
     cx = jnp.sum(w[:, None] * x, axis=0) / safe_count
-    dx = jnp.sqrt(jnp.sum((x - cx) ** 2, axis=1) + jnp.finfo(dtype).tiny)
+    dx = jnp.sqrt(jnp.sum((x - cx[None]) ** 2, axis=1) + jnp.finfo(dtype).tiny)
     sx = jnp.sqrt(2.0) / jnp.maximum(jnp.sum(w * dx) / safe_count, jnp.finfo(dtype).tiny)
     cX = jnp.sum(w[:, None] * X, axis=0) / safe_count
-    dX = jnp.sqrt(jnp.sum((X - cX) ** 2, axis=1) + jnp.finfo(dtype).tiny)
+    dX = jnp.sqrt(jnp.sum((X - cX[None]) ** 2, axis=1) + jnp.finfo(dtype).tiny)
     sX = jnp.sqrt(3.0) / jnp.maximum(jnp.sum(w * dX) / safe_count, jnp.finfo(dtype).tiny)
-    xn = (x - cx) * sx
-    Xh = jnp.concatenate([(X - cX) * sX, jnp.ones((n, 1), dtype=dtype)], axis=1)
+    xn = (x - cx[None]) * sx
+    Xh = jnp.concatenate([(X - cX[None]) * sX, jnp.ones((n, 1), dtype=dtype)], axis=1)
 
     zeros4 = jnp.zeros((n, 4), dtype=dtype)
     rows_u = jnp.concatenate([Xh, zeros4, -xn[:, 0:1] * Xh], axis=1)
@@ -232,8 +232,12 @@ def paper_linear_pose(
         A = jnp.concatenate([A, jnp.zeros((12 - 2 * n, 12), dtype=dtype)], axis=0)
     _, svals, Vt = jnp.linalg.svd(A, full_matrices=False)
     Pn = Vt[-1].reshape(3, 4)
-    svals_safe = jnp.where(svals[-2] > 0, svals[-2], 1.0)
-    rank_deficiency = jnp.where(svals[-2] > 0, svals[-1] / svals_safe, 1.0)
+    # s_min / s_second; when s_second is itself at rounding level (relative to s_max) the
+    # null space is numerically >= 2-dimensional: report 1.
+    second_ok = svals[-2] > 100.0 * jnp.finfo(dtype).eps * svals[0]
+    rank_deficiency = jnp.where(
+        second_ok, svals[-1] / jnp.where(second_ok, svals[-2], 1.0), 1.0
+    )
 
     # Undo normalization: x = T2^-1 Pn T3 [X; 1].
     T2inv = jnp.array(
@@ -269,7 +273,7 @@ def paper_linear_pose(
 
     # Point spread from an SVD (accurate to eps, unlike the closed form of `point_spread`).
     Xs = jax.lax.stop_gradient(X)
-    Q = (Xs - jnp.sum(w[:, None] * Xs, axis=0) / safe_count) * w[:, None]
+    Q = (Xs - jnp.sum(w[:, None] * Xs, axis=0, keepdims=True) / safe_count) * w[:, None]
     sv = jnp.linalg.svd(Q, compute_uv=False)
     sv0 = jnp.where(sv[0] > 0, sv[0], 1.0)
     planarity = jnp.where(sv[0] > 0, sv[2] / sv0, 0.0)

@@ -250,8 +250,7 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
         real_split = ok_ratio & (ratio >= 0) & jnp.isfinite(g)
         s = _safe_sqrt(ratio)
 
-        lams, oks = [], []
-        for sign in (1.0, -1.0):
+        def plane(sign):
             # lam^T D0 lam = s1 (e1.lam - s e2.lam)(e1.lam + s e2.lam): plane normal n.
             n = e1 - sign * s * e2
             w0, ok0 = _safe_div(-n[1], n[0], eps * 1e-3)
@@ -264,16 +263,16 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
             q = -0.5 * (B + jnp.where(B >= 0, 1.0, -1.0) * _safe_sqrt(disc))
             tau1, ok1 = _safe_div(q, A, tiny)
             tau2, ok2 = _safe_div(C, q, tiny)
-            for tau, ok_tau in ((tau1, ok1), (tau2, ok2)):
-                den = tau * tau - 2.0 * b23 * tau + 1.0
-                l3 = _safe_sqrt(_safe_div(a23, den, tiny)[0])
-                l2 = tau * l3
-                l1 = (w0 * tau + w1) * l3
-                lam = jnp.stack([l1, l2, l3])
-                ok = real_split & ok0 & ok_tau & (disc >= 0) & (tau > 0) & (l1 > 0)
-                lams.append(lam)
-                oks.append(ok)
-        return jnp.stack(lams), jnp.stack(oks)
+            tau = jnp.stack([tau1, tau2])
+            ok_tau = jnp.stack([ok1, ok2])
+            den = tau * tau - 2.0 * b23 * tau + 1.0
+            l3 = _safe_sqrt(_safe_div(a23, den, tiny)[0])
+            lam = jnp.stack([(w0 * tau + w1) * l3, tau * l3, l3], axis=1)
+            ok = real_split & ok0 & ok_tau & (disc >= 0) & (tau > 0) & (lam[:, 0] > 0)
+            return lam, ok
+
+        lams, oks = jax.vmap(plane)(jnp.array([1.0, -1.0], dtype=a.dtype))
+        return lams.reshape(4, 3), oks.reshape(4)
 
     lams, oks = closed_form(jax.lax.stop_gradient(a), jax.lax.stop_gradient(b))
     lams = jax.lax.stop_gradient(lams)
@@ -297,6 +296,6 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
     params = jax.vmap(_pose_from_triangles, in_axes=(None, 0))(X, points_cam)
     identity = jnp.zeros(7, dtype=dtype).at[0].set(1.0)
     ok_params = valid[:, None] & jnp.all(jnp.isfinite(params), axis=1, keepdims=True)
-    params = jnp.where(ok_params, params, identity)
+    params = jnp.where(ok_params, params, identity[None])
     valid = valid & ok_params[:, 0]
     return P3PSolution(poses=jaxlie.SE3(wxyz_xyz=params), valid=valid)
