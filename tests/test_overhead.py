@@ -134,10 +134,11 @@ def test_jit_eager_vmap_loop():
     d = _problems(np.random.default_rng(5), 200, "paper", noise_px=2.0)
     X, b = jnp.asarray(d["X"]), jnp.asarray(d["b"])
     batch = _robust_batch(X, b)
+    # The eager entry point runs its kernel under an internal `jax.jit`; comparing a Python
+    # loop of eager calls with the jit(vmap) batch covers jit == eager and vmap == loop
+    # without another (slow) compilation.
     for i in range(3):
         eager = _robust(X[i], b[i])
-        jitted = jax.jit(_robust)(X[i], b[i])
-        assert eqx.tree_equal(eager, jitted, rtol=1e-12, atol=1e-12)
         single = jax.tree.map(lambda x: x[i], batch)
         assert eqx.tree_equal(eager, single, rtol=1e-9, atol=1e-9)
 
@@ -147,19 +148,19 @@ def test_grad_matches_finite_differences():
     X, b = jnp.asarray(d["X"][0]), jnp.asarray(d["b"][0])
     weights = jnp.array([1.0, -2.0, 3.0])
 
-    @jax.jit
     def f(b):
         sol = solve_overhead_pose(X, b, throw=False)
         return jnp.sum(sol.pose.inverse().translation() * weights)
 
-    g = np.asarray(jax.jit(jax.grad(f))(b))
+    value_and_grad = jax.jit(jax.value_and_grad(f))  # one compilation for values and grads
+    g = np.asarray(value_and_grad(b)[1])
     assert np.all(np.isfinite(g))
     h = 1e-6
     fd = np.zeros((6, 3))
     for i in range(6):
         for j in range(3):
             e = jnp.zeros((6, 3)).at[i, j].set(h)
-            fd[i, j] = (f(b + e) - f(b - e)) / (2 * h)
+            fd[i, j] = (value_and_grad(b + e)[0] - value_and_grad(b - e)[0]) / (2 * h)
     np.testing.assert_allclose(g, fd, rtol=1e-3, atol=1e-4)
 
 
