@@ -243,6 +243,21 @@ def body_pose_on_surface(
             "`body_pose_on_surface` takes one robot: `xy` of shape (2,) and a scalar "
             f"`heading`; got shapes {xy.shape} and {heading.shape}. Use `jax.vmap` to batch."
         )
+    R, p = body_frame_on_surface(surface, xy, heading)
+    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(R), p)
+
+
+def body_frame_on_surface(
+    surface: AbstractSurface, xy: Float[ArrayLike, "*b 2"], heading: Float[ArrayLike, "*b"]
+) -> tuple[Float[Array, "*b 3 3"], Float[Array, "*b 3"]]:
+    """Matrix form of [`jaxloc.body_pose_on_surface`][], broadcasting over leading axes.
+
+    **Returns:** `(R_env_body, p_env_body)`: rotation matrices (columns: body x, y, z in
+    `E`), shape `(*b, 3, 3)`, and positions (m), shape `(*b, 3)`. Cheaper than building
+    `jaxlie.SE3`s (no matrix-to-quaternion conversion) for inner loops.
+    """
+    xy = _as_float(xy)
+    heading = jnp.asarray(heading, dtype=xy.dtype)
     p = surface.point(xy)
     z = surface.normal(xy).astype(p.dtype)
     c, s = jnp.cos(heading), jnp.sin(heading)
@@ -250,11 +265,10 @@ def body_pose_on_surface(
     # Vertical (not orthogonal) projection of (c, s, 0) into the tangent plane: the
     # tangent vector whose horizontal part is along the heading. The heading is then
     # exactly the azimuth of body x, and driving "along the heading" moves along it.
-    x = jnp.stack([c, s, g[0] * c + g[1] * s])
-    x = x / jnp.sqrt(jnp.sum(x * x))
+    x = jnp.stack([c, s, g[..., 0] * c + g[..., 1] * s], axis=-1)
+    x = x / jnp.sqrt(jnp.sum(x * x, axis=-1, keepdims=True))
     y = jnp.cross(z, x)
-    R = jaxlie.SO3.from_matrix(jnp.stack([x, y, z], axis=-1))
-    return jaxlie.SE3.from_rotation_and_translation(R, p)
+    return jnp.stack([x, y, z], axis=-1), p
 
 
 def formation_xy(base: Float[ArrayLike, ""], side: Float[ArrayLike, ""]) -> Float[Array, "3 2"]:
@@ -264,7 +278,7 @@ def formation_xy(base: Float[ArrayLike, ""], side: Float[ArrayLike, ""]) -> Floa
     $(-h, 0)$ with $h = \sqrt{\text{side}^2 - (\text{base}/2)^2}$ (1.118 m for the paper's
     base 2 m, legs 1.5 m), C2 at $(0, +\text{base}/2)$ and C3 at $(0, -\text{base}/2)$.
     The distances are measured in the `x-y` plane; on a curved ground the 3D distances
-    differ slightly (by < 1 mm for the paper's saddle).
+    differ slightly (by < 1 cm for the paper's saddle).
 
     **Arguments:**
 
