@@ -2,7 +2,7 @@
 
 Importing jaxloc enables JAX's 64-bit mode (`jax_enable_x64`): solvers and statistics
 run in float64 by default. Pass float32 arrays (or cast a scenario with
-`jaxloc.astype`) to run in float32.
+`jaxloc.astype(scenario, jnp.float32)`) to run in float32.
 """
 
 import jax
@@ -10,6 +10,23 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from ._camera import (
+    AbstractCamera as AbstractCamera,
+    OmniCamera as OmniCamera,
+    PinholeCamera as PinholeCamera,
+    PTZCamera as PTZCamera,
+)
+from ._montecarlo import run_chunk as run_chunk, run_study as run_study, trial_key as trial_key
+from ._mutual import mutual_localization as mutual_localization, MutualSolution as MutualSolution
+from ._observations import (
+    CycleObservations as CycleObservations,
+    CyclePoses as CyclePoses,
+    move_start_step as move_start_step,
+    moving_robot as moving_robot,
+    num_moves as num_moves,
+    num_steps as num_steps,
+)
+from ._overhead import solve_overhead_pose as solve_overhead_pose
 from ._pose import (
     kabsch as kabsch,
     pose_from_opencv as pose_from_opencv,
@@ -21,11 +38,56 @@ from ._pose import (
     rotation_from_ypr as rotation_from_ypr,
     ypr_from_rotation as ypr_from_rotation,
 )
+from ._presets import (
+    field_of_view as field_of_view,
+    paper_omni_camera as paper_omni_camera,
+    paper_overhead_camera as paper_overhead_camera,
+    paper_ptz_camera as paper_ptz_camera,
+    R_BODY_OMNI as R_BODY_OMNI,
+    R_BODY_OVERHEAD as R_BODY_OVERHEAD,
+    R_BODY_PTZ as R_BODY_PTZ,
+)
 from ._results import (
     RESULTS as RESULTS,
     status_code as status_code,
     status_messages as status_messages,
     status_names as status_names,
+)
+from ._scenario import (
+    astype as astype,
+    load_scenario as load_scenario,
+    save_scenario as save_scenario,
+    Scenario as Scenario,
+    scenario_from_dict as scenario_from_dict,
+    scenario_to_dict as scenario_to_dict,
+)
+from ._simulate import (
+    CycleTruth as CycleTruth,
+    noiseless as noiseless,
+    simulate_cycle as simulate_cycle,
+)
+from ._solvers import (
+    p3p as p3p,
+    P3PSolution as P3PSolution,
+    paper_linear_pose as paper_linear_pose,
+    PoseSolution as PoseSolution,
+)
+from ._stats import describe as describe, summarize as summarize
+from ._strategies import CycleEstimate as CycleEstimate, localize_cycle as localize_cycle
+from ._trial import (
+    CAMERAS as CAMERAS,
+    METHODS as METHODS,
+    run_trial as run_trial,
+    TrialErrors as TrialErrors,
+)
+from ._world import (
+    AbstractSurface as AbstractSurface,
+    body_pose_on_surface as body_pose_on_surface,
+    FlatSurface as FlatSurface,
+    formation_xy as formation_xy,
+    FunctionSurface as FunctionSurface,
+    SaddleSurface as SaddleSurface,
+    SinusoidSurface as SinusoidSurface,
 )
 
 

@@ -1,0 +1,239 @@
+"""The `jaxloc` command line: `table1`, `simulate`, `cameras`."""
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+
+# The paper's Table I (one simulated run): position errors in cm, orientation errors in
+# degrees (mean of yaw, pitch, roll errors), per camera C, C1, C2, C3.
+PAPER_TABLE1 = {
+    "concurrent": {
+        "position_cm": [2.85, 0.0, 3.77, 1.84],
+        "orientation_deg": [1.31, 0.0, 2.58, 0.97],
+    },
+    "sequential": {
+        "position_cm": [1.77, 0.37, 0.92, 1.46],
+        "orientation_deg": [0.83, 0.56, 0.86, 1.05],
+    },
+}
+METHOD_LABELS = {"paper": "paper Eq. 6", "robust": "jaxloc robust"}
+
+
+def _fmt(x: float, width: int = 7) -> str:
+    if not np.isfinite(x):
+        return "n/a".rjust(width)
+    if abs(x) >= 1000:
+        return f"{x:{width}.0f}"
+    return f"{x:{width}.2f}"
+
+
+def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
+    """The paper's Table I layout for one strategy, with jaxloc's distributions beside it."""
+    from ._trial import CAMERAS
+
+    lines = []
+    n = summary["n_trials"]
+    fails = []
+    for m in methods:
+        f = summary["methods"][m]["failures"]
+        text = ", ".join(f"{k} {v}" for k, v in f.items()) or "none"
+        fails.append(f"{METHOD_LABELS.get(m, m)}: {text}")
+    lines.append(
+        f"{strategy.capitalize()} strategy — {n} trials; failures skipped ({'; '.join(fails)})"
+    )
+    head = f"{'Camera':<10}{'paper run':>10} |"
+    sub = f"{'':<10}{'(1 trial)':>10} |"
+    for m in methods:
+        head += f" {METHOD_LABELS.get(m, m):^23} |"
+        sub += f" {'median':>7}{'RMSE':>8}{'p90':>8} |"
+    labels = {"C": "C", "C1": "C1", "C2": "C2", "C3": "C3"}
+    if strategy == "concurrent":
+        labels["C1"] = "C1 (ref)"
+    for title, key, scale, paper_key in (
+        ("Position error (cm, Euclidean)", "position_m", 100.0, "position_cm"),
+        (
+            "Orientation error (deg, mean of |yaw|, |pitch|, |roll| errors)",
+            "ypr_mean_abs_rad",
+            180.0 / np.pi,
+            "orientation_deg",
+        ),
+        ("Orientation error (deg, geodesic angle)", "rotation_rad", 180.0 / np.pi, None),
+    ):
+        lines.append("")
+        lines.append(title)
+        lines.append(head)
+        lines.append(sub)
+        for ci, cam in enumerate(CAMERAS):
+            paper = PAPER_TABLE1[strategy][paper_key][ci] if paper_key else float("nan")
+            row = f"{labels[cam]:<10}{_fmt(paper, 10)} |"
+            for m in methods:
+                s = summary["methods"][m]["cameras"][cam][key]
+                med, rmse, p90 = (s[k] * scale for k in ("median", "rmse", "p90"))
+                row += f" {_fmt(med)}{_fmt(rmse, 8)}{_fmt(p90, 8)} |"
+            lines.append(row)
+    return "\n".join(lines)
+
+
+def _assumptions(scenario, trials: int, seed: int) -> str:
+    noise = {
+        "paper": "radius ~ N(0, sigma), uniform direction (the paper's model)",
+        "gaussian": "isotropic Gaussian, sigma per axis",
+    }[scenario.noise_model]
+    return (
+        f"Assumptions: pixel noise sigma = {float(scenario.pixel_sigma):g} px, {noise}; "
+        f"odometry sigma = {100 * float(scenario.odometry_sigma_rel):g}% of the distance; "
+        f"{trials} trials per strategy; seed {seed}; float64.\n"
+        "Errors are of the end-of-cycle poses in the cycle's world frame (C1's body frame at "
+        "the start). 'paper run' is the paper's single simulated run (Table I)."
+    )
+
+
+def _run(scenarios: dict, args, title: str) -> int:
+    from ._montecarlo import run_study
+    from ._stats import summarize
+    from ._trial import METHODS
+
+    methods = METHODS
+    report = {"title": title, "trials": args.trials, "seed": args.seed, "strategies": {}}
+    print(title)
+    first = next(iter(scenarios.values()))
+    print(_assumptions(first, args.trials, args.seed))
+    studies = {}
+    for strategy, scenario in scenarios.items():
+        t0 = time.perf_counter()
+        out_dir = None if args.out is None else f"{args.out}/{strategy}"
+        study = run_study(
+            scenario,
+            args.trials,
+            seed=args.seed,
+            chunk_size=args.chunk_size,
+            methods=methods,
+            out_dir=out_dir,
+            progress=not args.no_progress,
+        )
+        elapsed = time.perf_counter() - t0
+        summary = summarize(study, methods)
+        summary["seconds"] = elapsed
+        report["strategies"][strategy] = summary
+        studies[strategy] = study
+        print()
+        print(format_table(strategy, summary, methods))
+        print(f"({elapsed:.1f} s including compilation)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=2)
+        print(f"\nwrote {args.json}")
+    if args.plot:
+        _plot(studies, methods, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _plot(studies: dict, methods, path: str):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ._trial import CAMERAS
+
+    fig, axes = plt.subplots(len(studies), 4, figsize=(16, 3.6 * len(studies)), squeeze=False)
+    for row, (strategy, study) in enumerate(studies.items()):
+        for ci, cam in enumerate(CAMERAS):
+            ax = axes[row, ci]
+            for mi, m in enumerate(methods):
+                ok = study["status"][:, mi] == 0
+                err = 100 * study["position"][ok, mi, ci]
+                if err.size and np.ptp(err) > 0:
+                    hi = np.percentile(err, 99)
+                    ax.hist(err[err <= hi], bins=60, alpha=0.55, label=METHOD_LABELS.get(m, m))
+            ax.set_title(f"{strategy}: {cam}")
+            ax.set_xlabel("position error (cm)")
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def _cmd_table1(args) -> int:
+    from ._scenario import Scenario
+
+    scenarios = {s: Scenario.paper(strategy=s) for s in ("concurrent", "sequential")}
+    return _run(
+        scenarios, args, "jaxloc table1 — the paper's Table I (simulation) as distributions"
+    )
+
+
+def _cmd_simulate(args) -> int:
+    from ._scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    return _run({scenario.strategy: scenario}, args, f"jaxloc simulate — {args.scenario}")
+
+
+def _cmd_cameras(args) -> int:
+    import jax.numpy as jnp
+
+    from ._presets import field_of_view, paper_omni_camera, paper_overhead_camera, paper_ptz_camera
+
+    cams = {
+        "overhead (C, perspective)": paper_overhead_camera(),
+        "PTZ (C1, wide end)": paper_ptz_camera(zoom=0.0),
+        "PTZ (C1, tele end)": paper_ptz_camera(zoom=1.0),
+        "omni (C2, C3)": paper_omni_camera(),
+    }
+    for name, cam in cams.items():
+        w, h = cam.image_size
+        u, v = np.meshgrid(np.linspace(0, w - 1, 41), np.linspace(0, h - 1, 31))
+        px = jnp.asarray(np.stack([u, v], -1).reshape(-1, 2))
+        rays = cam.unproject(px)
+        ok = np.asarray(cam.projectable(rays))
+        back = np.asarray(cam.project(rays))
+        err = np.abs(back - np.asarray(px))[ok].max() if ok.any() else float("nan")
+        fov = ", ".join(f"{k} {v:.1f}" for k, v in field_of_view(cam).items())
+        print(f"{name:<28} {w}x{h}  {fov}  round-trip max error {err:.1e} px")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="jaxloc", description="Cooperative localization of a heterogeneous robot team."
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def study_args(p):
+        p.add_argument("--trials", type=int, default=10_000, help="trials per strategy")
+        p.add_argument("--seed", type=int, default=0)
+        p.add_argument("--chunk-size", type=int, default=4096)
+        p.add_argument("--json", metavar="FILE", help="write every number as JSON")
+        p.add_argument("--plot", metavar="FILE", help="error histograms per camera (PNG)")
+        p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable)")
+        p.add_argument("--no-progress", action="store_true")
+
+    p = sub.add_parser("table1", help="the paper's Table I as distributions over many trials")
+    study_args(p)
+    p.set_defaults(func=_cmd_table1)
+    p = sub.add_parser("simulate", help="Monte Carlo study of a scenario file (YAML/JSON)")
+    p.add_argument("--scenario", required=True, metavar="FILE")
+    study_args(p)
+    p.set_defaults(func=_cmd_simulate)
+    p = sub.add_parser("cameras", help="the paper's preset cameras and a round-trip check")
+    p.set_defaults(func=_cmd_cameras)
+
+    args = parser.parse_args(argv)
+    if getattr(args, "trials", 1) <= 0:
+        parser.error(f"--trials must be positive; got {args.trials}")
+    if getattr(args, "chunk_size", 1) <= 0:
+        parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"jaxloc: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,209 @@
+"""Monte Carlo engine: many trials of a scenario, chunked, sharded, streamed to disk.
+
+Trial `i` of a study with seed `s` always uses the key `jax.random.fold_in(key(s), i)`, so
+the numbers do not depend on the chunk size, on the number of devices, or on which
+machine ran which chunk. Each chunk is one `jit(vmap(run_trial))` call whose trials are
+sharded over every local device; memory stays bounded by the chunk size whatever the
+number of trials.
+
+On disk a study is a folder: `study.json` (what was run: scenario, seed, chunk size,
+methods) and one `chunk_NNNNNN.npz` per chunk, each written to a temporary name and
+renamed atomically. Running the same study again resumes: finished chunks are read
+back, missing ones are computed; no trial is lost or duplicated.
+"""
+
+import json
+import os
+import time
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._scenario import Scenario, scenario_to_dict
+from ._trial import METHODS, run_trial
+
+
+FIELDS = ("status", "position", "rotation", "ypr", "position_vector")
+
+
+def trial_key(seed: int, index):
+    """Key of trial `index` of a study seeded with `seed` (the same on any machine)."""
+    return jr.fold_in(jr.key(seed), index)
+
+
+def _mesh() -> Mesh:
+    return Mesh(np.array(jax.devices()), ("trials",))
+
+
+@eqx.filter_jit
+def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
+    mesh = _mesh()
+    indices = start + jnp.arange(chunk_size)
+    indices = jax.lax.with_sharding_constraint(
+        indices, NamedSharding(mesh, PartitionSpec("trials"))
+    )
+    keys = jax.vmap(lambda i: jr.fold_in(jr.key(seed), i))(indices)
+    return jax.vmap(lambda k: run_trial(scenario, k, methods))(keys)
+
+
+def run_chunk(
+    scenario: Scenario,
+    seed: int,
+    chunk_index: int,
+    chunk_size: int,
+    methods: tuple[str, ...] = METHODS,
+) -> dict[str, np.ndarray]:
+    """Run one chunk of a study: trials `chunk_index * chunk_size + [0, chunk_size)`.
+
+    This is the unit of work to hand to a cluster engine (one task per chunk; see the
+    README's "Studies larger than one machine"). Deterministic: a retried task returns
+    the same numbers. `chunk_size` is rounded up to a multiple of the device count
+    internally and the padding trials are dropped.
+
+    **Returns:** a dict of numpy arrays, the fields of [`jaxloc.TrialErrors`][] with a
+    leading trial axis, plus `"index"` (the trial indices).
+    """
+    n_dev = jax.device_count()
+    padded = -(-chunk_size // n_dev) * n_dev
+    start = chunk_index * chunk_size
+    errors = _run_chunk(scenario, seed, start, padded, tuple(methods))
+    out = {name: np.asarray(getattr(errors, name))[:chunk_size] for name in FIELDS}
+    out["index"] = np.arange(start, start + chunk_size, dtype=np.int64)
+    return out
+
+
+def _atomic_write_npz(path: str, arrays: dict[str, np.ndarray]):
+    tmp = path + ".tmp.npz"
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _atomic_write_json(path: str, obj):
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def run_study(
+    scenario: Scenario,
+    n_trials: int,
+    *,
+    seed: int = 0,
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+    out_dir: str | None = None,
+    progress: bool = True,
+    on_chunk: Callable[[int, dict], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Run `n_trials` trials of `scenario` and return their errors.
+
+    **Arguments:**
+
+    - `scenario`: a [`jaxloc.Scenario`][].
+    - `n_trials`: number of trials (any positive int; the last chunk is partial).
+    - `seed`: the study's seed; trial `i` uses `fold_in(key(seed), i)`.
+    - `chunk_size`: trials per compiled call; bounds memory. Results do not depend on it.
+    - `methods`: estimators to compare on the same observations (see `jaxloc.METHODS`).
+    - `out_dir`: if given, every chunk is written there as it finishes, and a study
+      already present there is resumed (it must have the same scenario, seed, chunk size
+      and methods, or a `ValueError` says which differs).
+    - `progress`: show a progress bar with trials/s.
+    - `on_chunk`: optional callback `(chunk_index, arrays)` after each chunk.
+
+    **Returns:** dict of numpy arrays with a leading axis of `n_trials`: `"status"`
+    `(n, methods)`, `"position"`, `"rotation"` `(n, methods, 4)`, `"ypr"`,
+    `"position_vector"` `(n, methods, 4, 3)`, `"index"` `(n,)`.
+    """
+    if not isinstance(n_trials, int) or n_trials <= 0:
+        raise ValueError(f"`n_trials` must be a positive integer; got {n_trials!r}.")
+    if not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"`chunk_size` must be a positive integer; got {chunk_size!r}.")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise ValueError(f"`methods` must be a non-empty subset of {METHODS}; got {methods!r}.")
+    methods = tuple(methods)
+    n_chunks = -(-n_trials // chunk_size)
+    manifest = {
+        "scenario": scenario_to_dict(scenario),
+        "seed": seed,
+        "chunk_size": chunk_size,
+        "methods": list(methods),
+        "format": 1,
+    }
+    if out_dir is not None:
+        os.makedirs(out_dir, exist_ok=True)
+        path = os.path.join(out_dir, "study.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                existing = json.load(f)
+            for field in manifest:
+                if existing.get(field) != manifest[field]:
+                    raise ValueError(
+                        f"`out_dir` {out_dir!r} holds a study with a different `{field}`; "
+                        "use a new folder or the same settings to resume it."
+                    )
+        else:
+            _atomic_write_json(path, manifest)
+
+    chunks: list[dict[str, np.ndarray]] = []
+    bar = _progress(progress, n_trials)
+    done = 0
+    t0 = time.perf_counter()
+    for c in range(n_chunks):
+        size = min(chunk_size, n_trials - c * chunk_size)
+        arrays = None
+        chunk_path = None
+        if out_dir is not None:
+            chunk_path = os.path.join(out_dir, f"chunk_{c:06d}.npz")
+            if os.path.exists(chunk_path):
+                with np.load(chunk_path, allow_pickle=False) as z:
+                    arrays = {k: z[k] for k in z.files}
+        if arrays is None:
+            # Always compute whole chunks so a resumed, longer study gets the same trials.
+            arrays = run_chunk(scenario, seed, c, chunk_size, methods)
+            if chunk_path is not None:
+                _atomic_write_npz(chunk_path, arrays)
+        arrays = {k: v[:size] for k, v in arrays.items()}
+        chunks.append(arrays)
+        done += size
+        if on_chunk is not None:
+            on_chunk(c, arrays)
+        if bar is not None:
+            bar.advance(size, done / max(time.perf_counter() - t0, 1e-9))
+    if bar is not None:
+        bar.close()
+    return {k: np.concatenate([ch[k] for ch in chunks]) for k in chunks[0]}
+
+
+class _progress:
+    """A rich progress bar showing trials and trials/s (or nothing if disabled)."""
+
+    def __new__(cls, enabled: bool, total: int):
+        if not enabled:
+            return None
+        return super().__new__(cls)
+
+    def __init__(self, enabled: bool, total: int):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+        self._p = Progress(
+            TextColumn("trials"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]}"),
+            transient=True,
+        )
+        self._p.start()
+        self._task = self._p.add_task("trials", total=total, rate="")
+
+    def advance(self, n: int, rate: float):
+        self._p.update(self._task, advance=n, rate=f"{rate:,.0f} trials/s")
+
+    def close(self):
+        self._p.stop()

@@ -1,0 +1,328 @@
+r"""The two moving strategies of the paper (Sec. III.B-C): a cycle's observations to poses.
+
+Both strategies turn a [`jaxloc.CycleObservations`][] into a [`jaxloc.CycleEstimate`][]:
+the poses of C1, C2, C3 at every step of the cycle and of the overhead camera, in the
+cycle's world frame `W` (C1's body frame at the start), at metric scale.
+
+- **Sequential** (4 steps): C2 moves, then C3, then C1. Each new formation is solved
+  with respect to the robot that has moved the earliest (C3, then C1, then C2), and joined
+  to the previous one through the two robots that did not move: their distance fixes the
+  new formation's scale relative to the chain, and the reference robot's pose places it.
+  One global scale remains, fitted to the three odometry distances in closed form
+  (weighted least squares). Six distinct points for the overhead camera.
+- **Concurrent** (3 steps): C1 stays, C2 and C3 move together twice. Every formation is
+  solved in C1's frame, with its own scale. The three scales are fitted to the four
+  odometry distances: for each move, the two robots' distances fix the ratio of the
+  scales before and after through a quadratic with up to two positive roots; every
+  combination of roots (plus the equal-scale guess) starts a few Gauss-Newton steps, and
+  the lowest cost wins (a single local fit falls into wrong minima on the paper's own
+  geometry). Seven distinct points for the overhead camera.
+"""
+
+import itertools as it
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._mutual import mutual_localization
+from ._observations import (
+    CycleObservations,
+    CyclePoses,
+    move_start_step,
+    moving_robot,
+)
+from ._overhead import solve_overhead_pose
+from ._results import raise_if_failed, RESULTS
+
+
+class CycleEstimate(eqx.Module):
+    """Estimated poses of one localization cycle.
+
+    **Fields:**
+
+    - `poses`: a [`jaxloc.CyclePoses`][]: every ground robot's body pose at every step,
+      and the overhead camera's optical-frame pose, in the world frame `W` (C1's body frame
+      at the start of the cycle), metres.
+    - `scales`: metric scale applied to each step's formation (circumdiameter-1 units to
+      metres), shape `(steps,)`; all equal for the sequential strategy.
+    - `result`: a [`jaxloc.RESULTS`][] for the whole cycle.
+    - `stats`: diagnostics: `"min_angle"` (rad, smallest triangle angle over the steps),
+      `"odometry_rms"` (m, odometry residual after the scale fit), and the overhead
+      solver's `"planarity"`, `"collinearity"`, `"num_valid_candidates"`,
+      `"rms_angular_error"`.
+    """
+
+    poses: CyclePoses
+    scales: Float[Array, " steps"]
+    result: RESULTS
+    stats: dict[str, Array]
+
+
+# For every (step, robot): index of the distinct physical point it occupies.
+_POINT_ID = {
+    "sequential": np.array([[0, 1, 2], [0, 3, 2], [0, 3, 4], [5, 3, 4]]),
+    "concurrent": np.array([[0, 1, 2], [0, 3, 4], [0, 5, 6]]),
+}
+# Reference robot of each step's mutual localization.
+_REFERENCE = {"sequential": (0, 2, 0, 1), "concurrent": (0, 0, 0)}
+
+
+def overhead_point_ids(strategy: str) -> np.ndarray:
+    """Distinct point index of each (step, robot) sighting, shape `(steps, 3)`."""
+    return _POINT_ID[strategy]
+
+
+def _compose(T_w_ref: jaxlie.SE3, scale, T_ref_body: jaxlie.SE3) -> jaxlie.SE3:
+    """`T_w_ref @ T_ref_body`, with `T_ref_body`'s translations multiplied by `scale`."""
+
+    def one(wxyz_xyz):
+        T = jaxlie.SE3(wxyz_xyz)
+        T = jaxlie.SE3.from_rotation_and_translation(T.rotation(), scale * T.translation())
+        return (T_w_ref @ T).wxyz_xyz
+
+    return jaxlie.SE3(jax.vmap(one)(T_ref_body.wxyz_xyz))
+
+
+def _scale_translations(T: jaxlie.SE3, scale) -> jaxlie.SE3:
+    return jaxlie.SE3(T.wxyz_xyz.at[..., 4:].multiply(scale))
+
+
+def _pick(T: jaxlie.SE3, i: int) -> jaxlie.SE3:
+    return jaxlie.SE3(T.wxyz_xyz[i])
+
+
+def _distance(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
+    sq = jnp.sum((a - b) ** 2)
+    safe = jnp.where(sq > 0, sq, 1.0)
+    return jnp.where(sq > 0, jnp.sqrt(safe), 0.0)
+
+
+def _odometry_weights(obs: CycleObservations) -> Float[Array, " moves"]:
+    """Inverse-variance weights, falling back to equal weights for zero sigmas."""
+    sigma = obs.odometry_sigma
+    floor = 1e-9 + 1e-6 * jnp.max(jnp.abs(obs.odometry))
+    return 1.0 / jnp.maximum(sigma, floor) ** 2
+
+
+def _chain_sequential(obs: CycleObservations):
+    """Poses of every step in step-0 units (circumdiameter of the first formation = 1)."""
+    refs = _REFERENCE["sequential"]
+    movers = moving_robot("sequential")
+    sols = [mutual_localization(obs.mutual[k], refs[k], throw=False) for k in range(4)]
+    T = [sols[0].T_ref_body]
+    for k in range(1, 4):
+        ref, mover = refs[k], int(movers[k - 1])
+        shared = 3 - ref - mover
+        prev = T[k - 1]
+        chain_dist = _distance(prev.translation()[ref], prev.translation()[shared])
+        local_dist = _distance(
+            sols[k].T_ref_body.translation()[ref], sols[k].T_ref_body.translation()[shared]
+        )
+        ratio = chain_dist / jnp.where(local_dist > 0, local_dist, 1.0)
+        T.append(_compose(_pick(prev, ref), ratio, sols[k].T_ref_body))
+    return T, sols
+
+
+def _move_lengths(T: list[jaxlie.SE3], strategy: str) -> Float[Array, " moves"]:
+    starts, movers = move_start_step(strategy), moving_robot(strategy)
+    return jnp.stack(
+        [
+            _distance(T[int(a) + 1].translation()[int(r)], T[int(a)].translation()[int(r)])
+            for a, r in zip(starts, movers)
+        ]
+    )
+
+
+def _fit_sequential_scale(obs: CycleObservations, T: list[jaxlie.SE3]):
+    lengths = _move_lengths(T, "sequential")
+    w = _odometry_weights(obs)
+    denom = jnp.sum(w * lengths**2)
+    ok = denom > 1e-12 * jnp.sum(w * obs.odometry**2)
+    scale = jnp.sum(w * obs.odometry * lengths) / jnp.where(ok, denom, 1.0)
+    ok = ok & (scale > 0)
+    scale = jnp.where(ok, scale, 1.0)
+    rms = jnp.sqrt(jnp.mean((scale * lengths - obs.odometry) ** 2))
+    return scale, ok, rms
+
+
+def _ratio_candidates(p_before: Float[Array, "2 3"], p_after: Float[Array, "2 3"], d, w):
+    r"""Candidate values of `s_after / s_before` from two robots' move distances.
+
+    Robot j moved from `s_b p_j` to `s_a q_j` over distance `d_j`:
+    `s_b^2 |p|^2 - 2 s_b s_a p.q + s_a^2 |q|^2 = d^2`. Dividing the two robots' equations
+    by `d_j^2` and subtracting eliminates `s_b`, leaving a quadratic in `r = s_a / s_b`.
+    Returns the two roots (NaN-free; invalid ones flagged) and the guess `r = 1`.
+    """
+    d2 = jnp.maximum(d**2, 1e-30)
+    A = jnp.sum(p_before * p_before, axis=-1) / d2
+    B = jnp.sum(p_before * p_after, axis=-1) / d2
+    C = jnp.sum(p_after * p_after, axis=-1) / d2
+    a, b, c = C[0] - C[1], -2.0 * (B[0] - B[1]), A[0] - A[1]
+    disc = jnp.maximum(b * b - 4.0 * a * c, 0.0)
+    sq = jnp.sqrt(disc)
+    q = -0.5 * (b + jnp.where(b >= 0, sq, -sq))
+    safe_a = jnp.where(jnp.abs(a) > 1e-300, a, 1.0)
+    safe_q = jnp.where(jnp.abs(q) > 1e-300, q, 1.0)
+    r1 = jnp.where(jnp.abs(a) > 1e-300, q / safe_a, -1.0)
+    r2 = jnp.where(jnp.abs(q) > 1e-300, c / safe_q, -1.0)
+    roots = jnp.stack([r1, r2, jnp.ones_like(r1)])
+    valid = (roots > 0.05) & (roots < 20.0)
+    return jnp.where(valid, roots, 1.0), valid
+
+
+def _concurrent_cost_and_jac(s, P, d, w):
+    """Weighted odometry residuals of the concurrent strategy and their Jacobian."""
+    starts, movers = move_start_step("concurrent"), moving_robot("concurrent")
+
+    def residuals(s):
+        return jnp.stack(
+            [
+                jnp.sqrt(w[m]) * (_distance(s[a + 1] * P[a + 1, r], s[a] * P[a, r]) - d[m])
+                for m, (a, r) in enumerate(zip(starts.tolist(), movers.tolist()))
+            ]
+        )
+
+    return residuals(s), jax.jacfwd(residuals)(s)
+
+
+def _solve3(A: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Solve a 3x3 system by the adjugate (no LAPACK call; A is a small SPD matrix)."""
+    adj = jnp.stack([jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])], axis=1)
+    det = jnp.dot(A[0], adj[:, 0])
+    safe = jnp.where(jnp.abs(det) > 1e-300, det, 1.0)
+    return jnp.where(jnp.abs(det) > 1e-300, adj @ b / safe, 0.0)
+
+
+def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
+    """Scales `(s0, s1, s2)` of the three formations from the four odometry distances."""
+    d, w = obs.odometry, _odometry_weights(obs)
+    w = w / jnp.max(w)
+    # moves: [C2 0->1, C3 0->1, C2 1->2, C3 1->2]
+    r01, ok01 = _ratio_candidates(P[0, 1:], P[1, 1:], d[:2], w[:2])
+    r12, ok12 = _ratio_candidates(P[1, 1:], P[2, 1:], d[2:], w[2:])
+    combos = np.array(list(it.product(range(3), range(3))))
+    rho = jnp.stack(
+        [jnp.ones(len(combos)), r01[combos[:, 0]], r01[combos[:, 0]] * r12[combos[:, 1]]],
+        axis=1,
+    )
+    starts, movers = move_start_step("concurrent"), moving_robot("concurrent")
+
+    def init_and_refine(rho):
+        q = jnp.stack(
+            [
+                _distance(rho[a + 1] * P[a + 1, r], rho[a] * P[a, r])
+                for a, r in zip(starts.tolist(), movers.tolist())
+            ]
+        )
+        s0 = jnp.sum(w * d * q) / jnp.maximum(jnp.sum(w * q * q), 1e-30)
+        s = s0 * rho
+        for _ in range(6):
+            res, J = _concurrent_cost_and_jac(s, P, d, w)
+            step = _solve3(J.T @ J + 1e-12 * jnp.eye(3, dtype=s.dtype), -J.T @ res)
+            s_new = s + step
+            s = jnp.where(jnp.all(s_new > 0), s_new, s)
+        res, _ = _concurrent_cost_and_jac(s, P, d, w)
+        return s, jnp.sum(res**2)
+
+    s_all, cost = jax.vmap(init_and_refine)(rho)
+    allowed = ok01[combos[:, 0]] & ok12[combos[:, 1]] & jnp.all(s_all > 0, axis=1)
+    cost = jnp.where(allowed & jnp.isfinite(cost), cost, jnp.inf)
+    best = jnp.argmin(cost)
+    scales = s_all[best]
+    ok = jnp.isfinite(cost[best]) & jnp.all(jnp.isfinite(scales))
+    scales = jnp.where(ok, scales, 1.0)
+    lengths = jnp.stack(
+        [
+            _distance(scales[a + 1] * P[a + 1, r], scales[a] * P[a, r])
+            for a, r in zip(starts.tolist(), movers.tolist())
+        ]
+    )
+    rms = jnp.sqrt(jnp.mean((lengths - d) ** 2))
+    return scales, ok, rms
+
+
+def _overhead_problem(obs: CycleObservations, positions: Float[Array, "steps 3 3"]):
+    """Distinct world points and their mean overhead bearing (repeated sightings averaged)."""
+    ids = _POINT_ID[obs.strategy]
+    n_points = int(ids.max()) + 1
+    first = {}
+    for k in range(ids.shape[0]):
+        for r in range(3):
+            first.setdefault(int(ids[k, r]), (k, r))
+    points = jnp.stack([positions[first[i]] for i in range(n_points)])
+    vis = obs.overhead_visible
+    bearings = jnp.where(vis[..., None], obs.overhead, 0.0)
+    bearings = jnp.where(jnp.isfinite(bearings), bearings, jnp.nan)
+    summed = jnp.stack(
+        [sum(bearings[k, r] for k, r in zip(*np.nonzero(ids == i))) for i in range(n_points)]
+    )
+    seen = jnp.stack(
+        [sum(vis[k, r] for k, r in zip(*np.nonzero(ids == i))) for i in range(n_points)]
+    )
+    sq = jnp.sum(summed**2, axis=-1, keepdims=True)
+    mean_bearing = summed / jnp.sqrt(jnp.where(sq > 0, sq, 1.0))
+    return points, mean_bearing, seen > 0
+
+
+def localize_cycle(
+    observations: CycleObservations,
+    *,
+    method: str = "robust",
+    throw: bool = True,
+) -> CycleEstimate:
+    r"""All four robots' poses from one cycle's observations, at metric scale.
+
+    The strategy is read from `observations.strategy`. Pure: `jit`, `vmap` and `grad`
+    apply (batch observations with `jax.vmap(localize_cycle)`).
+
+    **Arguments:**
+
+    - `observations`: a [`jaxloc.CycleObservations`][] (bearings in body/camera frames
+      and odometry), from the simulator, the image front end or a real robot.
+    - `method`: the overhead camera's pose solver, `"robust"` (default: every point
+      triplet through P3P, best candidate on all points; correct on a flat floor) or
+      `"paper"` (the paper's 12-unknown linear system, Eq. 6; rank deficient on planar
+      ground). See [`jaxloc.solve_overhead_pose`][].
+    - `throw`: raise on failure if `True`; otherwise inspect `result`. Keyword only.
+
+    **Returns:** a [`jaxloc.CycleEstimate`][] in the world frame `W` = C1's body frame at
+    the start of the cycle.
+    """
+    strategy = observations.strategy
+    if strategy == "sequential":
+        T, sols = _chain_sequential(observations)
+        scale, scale_ok, odo_rms = _fit_sequential_scale(observations, T)
+        T = [_scale_translations(Tk, scale) for Tk in T]
+        scales = jnp.full((4,), scale)
+    else:
+        sols = [mutual_localization(observations.mutual[k], 0, throw=False) for k in range(3)]
+        P = jnp.stack([s.T_ref_body.translation() for s in sols])
+        scales, scale_ok, odo_rms = _fit_concurrent_scales(observations, P)
+        T = [_scale_translations(s.T_ref_body, scales[k]) for k, s in enumerate(sols)]
+
+    T_world_body = jaxlie.SE3(jnp.stack([Tk.wxyz_xyz for Tk in T]))
+    positions = T_world_body.translation()
+    points, bearings, mask = _overhead_problem(observations, positions)
+    pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
+    T_world_overhead = pose_sol.pose.inverse()
+
+    mutual_result = sols[0].result
+    for s in sols[1:]:
+        mutual_result = RESULTS.where(s.result == RESULTS.successful, mutual_result, s.result)
+    odometry_ok = jnp.all(jnp.isfinite(observations.odometry)) & jnp.all(
+        jnp.isfinite(observations.odometry_sigma)
+    )
+    result = pose_sol.result
+    result = RESULTS.where(scale_ok, result, RESULTS.scale_unobservable)
+    result = RESULTS.where(mutual_result == RESULTS.successful, result, mutual_result)
+    result = RESULTS.where(odometry_ok, result, RESULTS.nonfinite_observation)
+
+    stats = dict(pose_sol.stats)
+    stats["min_angle"] = jnp.min(jnp.stack([s.stats["min_angle"] for s in sols]))
+    stats["odometry_rms"] = odo_rms
+    estimate = CycleEstimate(CyclePoses(T_world_body, T_world_overhead), scales, result, stats)
+    return raise_if_failed(estimate, result, throw)

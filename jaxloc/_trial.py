@@ -1,0 +1,111 @@
+"""One Monte Carlo trial: simulate a cycle, estimate it with every method, score it."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+from jaxtyping import Array, Float, Int, PRNGKeyArray
+
+from ._observations import CyclePoses
+from ._pose import rotation_error, ypr_from_rotation
+from ._presets import R_BODY_OVERHEAD
+from ._results import RESULTS, status_code
+from ._scenario import Scenario
+from ._simulate import simulate_cycle
+from ._strategies import CycleEstimate, localize_cycle
+
+
+#: Estimators a study can compare. "paper": the paper's linear Eq. 6 for the overhead
+#: camera; "robust": jaxloc's planar-safe P3P-based closed form (the default).
+METHODS = ("paper", "robust")
+#: Order of the cameras in every per-camera array: overhead C, then C1, C2, C3.
+CAMERAS = ("C", "C1", "C2", "C3")
+
+
+class TrialErrors(eqx.Module):
+    """Errors of one trial's end-of-cycle estimates against the truth, per method.
+
+    All arrays have leading shape `(methods,)` and then one entry per camera in the order
+    `("C", "C1", "C2", "C3")` (see `jaxloc.CAMERAS`); C's errors are those of its body
+    frame (its camera's centre and the climbing robot's orientation).
+
+    **Fields:**
+
+    - `status`: int32 status code per method (0 = successful; see
+      [`jaxloc.status_names`][]), shape `(methods,)`.
+    - `position`: Euclidean position error (m), shape `(methods, 4)`.
+    - `rotation`: geodesic rotation error (rad), shape `(methods, 4)`.
+    - `ypr`: yaw, pitch, roll errors (rad, estimate minus truth, wrapped to
+      `(-pi, pi]`), shape `(methods, 4, 3)`.
+    - `position_vector`: estimate minus truth (m) in the world frame, shape
+      `(methods, 4, 3)`, for covariance checks.
+    """
+
+    status: Int[Array, " methods"]
+    position: Float[Array, "methods 4"]
+    rotation: Float[Array, "methods 4"]
+    ypr: Float[Array, "methods 4 3"]
+    position_vector: Float[Array, "methods 4 3"]
+
+
+def overhead_body(T_world_overhead: jaxlie.SE3) -> jaxlie.SE3:
+    """Climbing robot's body pose from its camera's optical-frame pose (fixed mount)."""
+    R_body_cam = jaxlie.SO3.from_matrix(
+        jnp.asarray(R_BODY_OVERHEAD, T_world_overhead.wxyz_xyz.dtype)
+    )
+    return T_world_overhead @ jaxlie.SE3.from_rotation(R_body_cam.inverse())
+
+
+def final_poses(poses: CyclePoses) -> jaxlie.SE3:
+    """End-of-cycle body poses of (C, C1, C2, C3), batch shape `(4,)`."""
+    body_c = overhead_body(poses.T_world_overhead)
+    ground = poses.T_world_body.wxyz_xyz[-1]
+    return jaxlie.SE3(jnp.concatenate([body_c.wxyz_xyz[None], ground], axis=0))
+
+
+def _wrap(angle):
+    return jnp.arctan2(jnp.sin(angle), jnp.cos(angle))
+
+
+def score(estimate: CyclePoses, truth: CyclePoses):
+    """Per-camera errors of `estimate` against `truth` (see [`jaxloc.TrialErrors`][])."""
+    est, tru = final_poses(estimate), final_poses(truth)
+
+    def one(e, t):
+        e, t = jaxlie.SE3(e), jaxlie.SE3(t)
+        diff = e.translation() - t.translation()
+        sq = jnp.sum(diff**2)
+        pos = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+        rot = rotation_error(e.rotation(), t.rotation())
+        ypr = _wrap(
+            ypr_from_rotation(e.rotation(), degrees=False)
+            - ypr_from_rotation(t.rotation(), degrees=False)
+        )
+        return pos, rot, ypr, diff
+
+    return jax.vmap(one)(est.wxyz_xyz, tru.wxyz_xyz)
+
+
+def estimate_all(observations, methods: tuple[str, ...] = METHODS) -> list[CycleEstimate]:
+    """Run every requested estimator on the same observations."""
+    return [localize_cycle(observations, method=m, throw=False) for m in methods]
+
+
+def run_trial(
+    scenario: Scenario, key: PRNGKeyArray, methods: tuple[str, ...] = METHODS
+) -> TrialErrors:
+    """Simulate one cycle of `scenario`, estimate it with each of `methods`, score it.
+
+    Pure and branch-free: batch with `jax.vmap(lambda k: run_trial(scenario, k))(keys)`.
+    A trial whose moves could not keep every robot in view gets status `not_visible`;
+    a failed estimate keeps its solver's status. Errors of failed trials are finite
+    but meaningless: statistics must skip them (see [`jaxloc.summarize`][]).
+    """
+    truth, observations, all_visible = simulate_cycle(scenario, key)
+    fields = []
+    for estimate in estimate_all(observations, methods):
+        result = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
+        pos, rot, ypr, diff = score(estimate.poses, truth.poses)
+        fields.append((status_code(result), pos, rot, ypr, diff))
+    stacked = [jnp.stack(f) for f in zip(*fields)]
+    return TrialErrors(*stacked)
