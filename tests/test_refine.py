@@ -1,0 +1,233 @@
+"""Tests of jaxloc._refine: single overhead-pose refinement and joint cycle refinement.
+
+Compilations are shared: one module-level `jit(vmap(...))` at a fixed batch size serves
+the exactness, Monte Carlo, NEES and failure-code tests.
+"""
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import jaxlie
+import numpy as np
+import pytest
+from jaxloc._presets import paper_overhead_camera
+from jaxloc._refine import refine_overhead_pose
+from jaxloc._results import RESULTS
+from scipy.stats import chi2
+
+
+CAM = paper_overhead_camera()
+BATCH = 256
+N_POINTS = 6
+
+
+def _true_problem(rng: np.random.Generator):
+    """Six robots near the paper's floor and an overhead camera ~3.5 m above, looking down."""
+    X = np.c_[rng.uniform(-1.2, 1.2, (N_POINTS, 2)), rng.normal(0.0, 0.1, N_POINTS)]
+    yaw, tilt = rng.uniform(0, 2 * np.pi), rng.normal(0.0, 0.05, 2)
+    R = (
+        jaxlie.SO3.from_x_radians(np.pi + tilt[0])
+        @ jaxlie.SO3.from_y_radians(tilt[1])
+        @ jaxlie.SO3.from_z_radians(yaw)
+    )
+    centre = np.array([*rng.normal(0.0, 0.2, 2), 3.5 + rng.normal(0.0, 0.1)])
+    T = jaxlie.SE3.from_rotation_and_translation(R, -(R @ jnp.asarray(centre)))
+    return X, np.asarray(T.wxyz_xyz)
+
+
+def _batch_problems(seed: int):
+    rng = np.random.default_rng(seed)
+    Xs, Ts = zip(*[_true_problem(rng) for _ in range(BATCH)])
+    return np.stack(Xs), np.stack(Ts)
+
+
+@jax.jit
+def _project_all(T, X):
+    return jax.vmap(lambda t, x: CAM.project(jax.vmap(jaxlie.SE3(t).apply)(x)))(T, X)
+
+
+@jax.jit
+def _refine_batch(T0, X, uv, mask):
+    """`jit(vmap(refine_overhead_pose))` at the fixed batch size (LM, least squares)."""
+
+    def one(t0, x, u, m):
+        sol = refine_overhead_pose(jaxlie.SE3(t0), CAM, x, u, m, sigma=1.0, throw=False)
+        return sol.pose.wxyz_xyz, sol.result, sol.stats
+
+    return jax.vmap(one)(T0, X, uv, mask)
+
+
+def _perturb(T, key, scale):
+    delta = scale * jr.normal(key, (T.shape[0], 6), dtype=T.dtype)
+    return jax.vmap(lambda t, d: jaxlie.manifold.rplus(jaxlie.SE3(t), d).wxyz_xyz)(T, delta)
+
+
+def _tangent_error(T_hat, T_true):
+    """`e` with `T_true = T_hat exp(e)`."""
+    return jax.vmap(lambda a, b: jaxlie.manifold.rminus(jaxlie.SE3(a), jaxlie.SE3(b)))(
+        T_hat, T_true
+    )
+
+
+def _same_pose(a, b, atol):
+    # q and -q are the same rotation.
+    a, b = np.asarray(a), np.asarray(b)
+    sign = np.sign(np.sum(a[..., :4] * b[..., :4], axis=-1, keepdims=True))
+    np.testing.assert_allclose(np.concatenate([a[..., :4] * sign, a[..., 4:]], -1), b, atol=atol)
+
+
+def test_noiseless_converges_from_perturbed_start(getkey):
+    X, T = _batch_problems(0)
+    uv = _project_all(T, X)
+    T0 = _perturb(jnp.asarray(T), getkey(), 0.05)
+    mask = np.ones((BATCH, N_POINTS), bool)
+    pose, result, stats = _refine_batch(T0, X, uv, mask)
+    assert np.all(np.asarray(result._value) == 0)
+    _same_pose(pose, T, 1e-8)
+    assert np.all(np.asarray(stats["rms_pixel_error"]) < 1e-6)
+    assert np.all(np.asarray(stats["num_steps"]) < 32)
+
+
+def test_failure_codes_in_a_batch():
+    X, T = _batch_problems(1)
+    uv = np.array(_project_all(T, X))
+    mask = np.ones((BATCH, N_POINTS), bool)
+    uv[0, 2] = np.nan  # NaN in an unmasked pixel
+    uv[1, 2] = np.nan  # ... masked out: fine
+    mask[1, 2] = False
+    mask[2, 2:] = False  # two points left
+    X = X.copy()
+    X[3, 0] = np.nan  # NaN world point
+    pose, result, _ = _refine_batch(jnp.asarray(T), X, uv, mask)
+    codes = np.asarray(result._value)
+    assert codes[0] == RESULTS.nonfinite_observation._value
+    assert codes[1] == 0
+    assert codes[2] == RESULTS.too_few_points._value
+    assert codes[3] == RESULTS.nonfinite_observation._value
+    assert np.all(codes[4:] == 0)
+    assert np.all(np.isfinite(np.asarray(pose)))
+    _same_pose(pose[1], T[1], 1e-8)
+    np.testing.assert_array_equal(np.asarray(pose)[[0, 2, 3]], [[1, 0, 0, 0, 0, 0, 0]] * 3)
+
+
+def _centre_cov(T, P):
+    """World-frame camera-centre covariance from a tangent covariance of T_cam_world."""
+
+    def centre(d):
+        return jaxlie.manifold.rplus(jaxlie.SE3(T), d).inverse().translation()
+
+    G = jax.jacfwd(centre)(jnp.zeros(6, T.dtype))
+    return G @ P @ G.T
+
+
+def test_monte_carlo_matches_crlb_and_nees(getkey):
+    """One fixed geometry, BATCH noisy trials: RMSE ~ CRLB, NEES ~ chi-square(6)."""
+    X, T = _true_problem(np.random.default_rng(3))
+    Xb = np.broadcast_to(X, (BATCH,) + X.shape)
+    Tb = np.broadcast_to(T, (BATCH, 7))
+    sigma = 1.0
+    uv = _project_all(Tb, Xb)
+    noisy = uv + sigma * jr.normal(getkey(), uv.shape, uv.dtype)
+    T0 = _perturb(jnp.asarray(Tb), getkey(), 0.01)
+    pose, result, stats = _refine_batch(T0, Xb, noisy, np.ones((BATCH, N_POINTS), bool))
+    assert np.all(np.asarray(result._value) == 0)
+    # CRLB at the truth: the refinement's own covariance formula on exact pixels.
+    _, _, st0 = _refine_batch(jnp.asarray(Tb[:]), Xb, uv, np.ones((BATCH, N_POINTS), bool))
+    crlb = np.asarray(st0["covariance"][0])
+    e = np.asarray(_tangent_error(pose, jnp.asarray(Tb)))
+    # NEES with the CRLB and with each trial's own covariance estimate.
+    nees_crlb = np.mean(np.einsum("ni,ij,nj->n", e, np.linalg.inv(crlb), e))
+    P = np.asarray(stats["covariance"])
+    nees_own = np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e))
+    lo, hi = chi2.ppf([0.0005, 0.9995], 6 * BATCH) / BATCH  # 99.9% (two tests share a seed)
+    assert lo < nees_crlb < hi, nees_crlb
+    assert lo < nees_own < hi, nees_own
+    # Camera-centre RMSE (world frame) vs sqrt(trace) of its propagated CRLB.
+    centres = jax.vmap(lambda t: jaxlie.SE3(t).inverse().translation())(pose)
+    true_centre = np.asarray(jaxlie.SE3(jnp.asarray(T)).inverse().translation())
+    rmse = np.sqrt(np.mean(np.sum((np.asarray(centres) - true_centre) ** 2, -1)))
+    bound = np.sqrt(np.trace(np.asarray(_centre_cov(jnp.asarray(T), crlb))))
+    assert abs(rmse / bound - 1) < 0.2, (rmse, bound)
+    rot_rmse = np.sqrt(np.mean(np.sum(e[:, 3:] ** 2, -1)))
+    assert abs(rot_rmse / np.sqrt(np.trace(crlb[3:, 3:])) - 1) < 0.2
+
+
+@pytest.mark.slow
+def test_monte_carlo_within_10_percent_of_crlb(getkey):
+    X, T = _true_problem(np.random.default_rng(4))
+    Xb = np.broadcast_to(X, (BATCH,) + X.shape)
+    Tb = jnp.asarray(np.broadcast_to(T, (BATCH, 7)))
+    mask = np.ones((BATCH, N_POINTS), bool)
+    uv = _project_all(Tb, Xb)
+    errs = []
+    for _ in range(8):  # 2048 trials
+        noisy = uv + jr.normal(getkey(), uv.shape, uv.dtype)
+        pose, result, _ = _refine_batch(Tb, Xb, noisy, mask)
+        assert np.all(np.asarray(result._value) == 0)
+        errs.append(np.asarray(_tangent_error(pose, Tb)))
+    e = np.concatenate(errs)
+    _, _, st0 = _refine_batch(Tb, Xb, uv, mask)
+    crlb = np.asarray(st0["covariance"][0])
+    for block in (slice(0, 3), slice(3, 6)):
+        rmse = np.sqrt(np.mean(np.sum(e[:, block] ** 2, -1)))
+        assert abs(rmse / np.sqrt(np.trace(crlb[block, block])) - 1) < 0.1
+    nees = np.mean(np.einsum("ni,ij,nj->n", e, np.linalg.inv(crlb), e))
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * len(e)) / len(e)
+    assert lo < nees < hi, nees
+
+
+def _single_problem(seed=5, noise=1.0):
+    X, T = _true_problem(np.random.default_rng(seed))
+    uv = CAM.project(jax.vmap(jaxlie.SE3(T).apply)(jnp.asarray(X)))
+    uv = uv + noise * np.random.default_rng(seed + 1).normal(size=uv.shape)
+    return X, np.array(uv), jaxlie.SE3(jnp.asarray(T))
+
+
+_W = jnp.array([0.3, -1.0, 0.7, 2.0, 0.5, -0.4])
+
+
+def _scalar(u, X, T0):
+    """A scalar function of the refined pose: its camera centre and rotation vector."""
+    sol = refine_overhead_pose(T0, CAM, X, u, throw=False)
+    centre = sol.pose.inverse().translation()
+    return jnp.dot(_W[:3], centre) + jnp.dot(_W[3:], sol.pose.rotation().log())
+
+
+def test_grad_wrt_pixels_matches_finite_differences():
+    X, uv, T0 = _single_problem()
+    g = jax.jit(jax.grad(_scalar))(jnp.asarray(uv), X, T0)
+    h = 1e-3
+    d = np.random.default_rng(0).normal(size=uv.shape)
+    for direction in [d, np.eye(12)[0].reshape(6, 2), np.eye(12)[7].reshape(6, 2)]:
+        fd = (_scalar(uv + h * direction, X, T0) - _scalar(uv - h * direction, X, T0)) / (2 * h)
+        np.testing.assert_allclose(jnp.sum(g * direction), fd, rtol=1e-5, atol=1e-9)
+
+
+def test_throw_and_argument_errors():
+    X, uv, T0 = _single_problem()
+    with pytest.raises(Exception, match="Fewer points"):
+        refine_overhead_pose(T0, CAM, X, uv, np.arange(N_POINTS) < 2)
+    with pytest.raises(Exception, match="NaN or infinite"):
+        refine_overhead_pose(T0, CAM, X, np.where(np.arange(N_POINTS)[:, None] == 1, np.nan, uv))
+    with pytest.raises(ValueError, match="`solver`"):
+        refine_overhead_pose(T0, CAM, X, uv, solver="dogleg")
+    with pytest.raises(ValueError, match="`loss`"):
+        refine_overhead_pose(T0, CAM, X, uv, loss="l1")
+    with pytest.raises(ValueError, match="`pixels`"):
+        refine_overhead_pose(T0, CAM, X, uv[:3])
+
+
+def test_robust_losses_resist_an_outlier():
+    X, uv, T0 = _single_problem(seed=8, noise=0.3)
+    uv[0] += [25.0, -20.0]
+    true_centre = np.asarray(T0.inverse().translation())
+
+    def err(sol):
+        assert sol.result == RESULTS.successful
+        return np.linalg.norm(np.asarray(sol.pose.inverse().translation()) - true_centre)
+
+    plain = refine_overhead_pose(T0, CAM, X, uv, sigma=0.3)
+    huber = refine_overhead_pose(T0, CAM, X, uv, sigma=0.3, loss="huber")
+    cauchy = refine_overhead_pose(T0, CAM, X, uv, sigma=0.3, solver="gn", loss="cauchy")
+    assert err(huber) < 0.5 * err(plain), (err(huber), err(plain))
+    assert err(cauchy) < 0.2 * err(plain), (err(cauchy), err(plain))
