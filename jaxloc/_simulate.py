@@ -139,16 +139,19 @@ def _visibility(scenario: Scenario, rel, p_over_cam):
 
 
 def _formations_ok(scenario: Scenario, xy, R_over, t_over):
-    """Feasibility of formations `xy` `(n, 3, 2)`: required sightings and separation."""
+    """Feasibility of formations `xy` `(n, 3, 2)`: required sightings and separation.
+
+    Returns `(ok (n,), overhead_in_view (n, 3), mutual_in_view (n, 3, 3))`."""
     R, p = _robot_frames(scenario, xy)
     rel = _relative_points(R, p)
     p_over = jnp.einsum("ab,nja->njb", R_over, p - t_over[None, None, :])
-    ok, _, _ = _visibility(scenario, rel, p_over)
+    ok, over, mutual = _visibility(scenario, rel, p_over)
     d = p[:, :, None, :] - p[:, None, :, :]
     dist2 = jnp.sum(d * d, axis=-1)
     sep = scenario.min_separation.astype(xy.dtype)
     diag = jnp.broadcast_to(np.eye(3, dtype=bool), dist2.shape)
-    return ok & jnp.all(jnp.where(diag, True, dist2 >= sep * sep), axis=(-2, -1))
+    ok = ok & jnp.all(jnp.where(diag, True, dist2 >= sep * sep), axis=(-2, -1))
+    return ok, over, mutual
 
 
 def _pixel_noise(scenario: Scenario, key, shape, dtype):
@@ -256,14 +259,18 @@ def simulate_cycle(
         cands = jnp.where(movers_now[None, :, None], new, xy[None])
         # The current formation is checked too: that is the initial formation's check at
         # the first step, at the cost of one extra candidate.
-        mask = _formations_ok(scenario, jnp.concatenate([xy[None], cands]), R_over, t_over)
+        mask, over, mutual = _formations_ok(
+            scenario, jnp.concatenate([xy[None], cands]), R_over, t_over
+        )
         best = jnp.argmax(mask[1:])
         xy = cands[best]
         feasible = feasible & mask[1 + best] & (mask[0] | ~first)
-        return (xy, feasible), xy
+        # Sightings of the current and of the chosen formation, reused for the pixels.
+        vis = (over[0], mutual[0], over[1 + best], mutual[1 + best])
+        return (xy, feasible), (xy, vis)
 
     first = np.arange(steps - 1) == 0
-    (_, feasible), xy_moved = jax.lax.scan(
+    (_, feasible), (xy_moved, vis) = jax.lax.scan(
         one_step,
         (xy0, jnp.array(True)),
         (jr.split(k_moves, steps - 1), jnp.asarray(mover_mask), jnp.asarray(first)),
@@ -274,7 +281,8 @@ def simulate_cycle(
     # 3. Observations.
     rel = _relative_points(R_b, p_b)  # (steps, 3, 3, 3): robot j in robot i's body frame
     p_over = jnp.einsum("ab,kja->kjb", R_over, p_b - t_over[None, None, :])
-    _, over_vis, mutual_vis = _visibility(scenario, rel, p_over)
+    over_vis = jnp.concatenate([vis[0][:1], vis[2]])  # (steps, 3)
+    mutual_vis = jnp.concatenate([vis[1][:1], vis[3]])  # (steps, 3, 3)
     eye = jnp.broadcast_to(np.eye(3, dtype=bool)[:, :, None], rel.shape)
     # Dummy target (straight ahead) on the diagonal, masked below.
     ahead = jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0], dtype), rel.shape)
@@ -310,13 +318,24 @@ def simulate_cycle(
     R0, p0 = R_b[0, 0], p_b[0, 0]
     R_wb = jnp.einsum("ba,kibc->kiac", R0, R_b)
     p_wb = jnp.einsum("ba,kib->kia", R0, p_b - p0[None, None, :])
-    T_world_body = jax.vmap(jax.vmap(_se3))(R_wb, p_wb)
-    T_world_overhead = _se3(R0.T @ R_over, R0.T @ (t_over - p0))
+    # One batched matrix -> quaternion conversion for every pose (a smaller program).
+    n = 3 * steps
+    Rs = jnp.concatenate(
+        [R_wb.reshape(n, 3, 3), R_b.reshape(n, 3, 3), jnp.stack([R0.T @ R_over, R_climber, R_over])]
+    )
+    ps = jnp.concatenate(
+        [p_wb.reshape(n, 3), p_b.reshape(n, 3), jnp.stack([R0.T @ (t_over - p0), t_over, t_over])]
+    )
+    T_all = jax.vmap(_se3)(Rs, ps)
+
+    def part(i, shape=()):
+        return jax.tree.map(lambda x: x[i].reshape(shape + x.shape[1:]), T_all)
+
+    T_world_body = part(slice(0, n), (steps, 3))
+    T_env_body = part(slice(n, 2 * n), (steps, 3))
+    T_world_overhead, T_env_climber, T_env_overhead = part(2 * n), part(2 * n + 1), part(2 * n + 2)
+    T_env_world = part(n)  # C1 at step 0
     poses = CyclePoses(T_world_body=T_world_body, T_world_overhead=T_world_overhead)
-    T_env_body = jax.vmap(jax.vmap(_se3))(R_b, p_b)
-    T_env_climber = _se3(R_climber, t_over)
-    T_env_overhead = _se3(R_over, t_over)
-    T_env_world = _se3(R0, p0)
     truth = CycleTruth(
         poses=poses,
         T_env_world=T_env_world,

@@ -90,28 +90,33 @@ def test_shapes_frames_and_feasibility(strategy):
     np.testing.assert_allclose(truth.move_distances, dist, rtol=1e-12)
 
 
-@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
-def test_required_robots_in_view(strategy):
-    s, (truth, obs, ok) = _run(strategy)
+@eqx.filter_jit
+def _sightings(s, truth):
+    """In-view flags recomputed from the truth poses through jaxlie and the mounts, not
+    the simulator's einsums."""
     T_eb, T_eo = truth.T_env_body, truth.T_env_overhead
     p = T_eb.translation()  # (N, steps, 3, 3)
-    # Overhead camera sees all three robots at every step.
     q = jax.vmap(lambda T, x: jax.vmap(jax.vmap(lambda y: T.inverse() @ y))(x))(T_eo, p)
-    over = s.overhead.in_view(q)
-    np.testing.assert_array_equal(over, obs.overhead_visible)
-    assert np.all(over[ok])
 
-    # Mutual sightings through jaxlie and the mounts, not the simulator's einsums.
     def rel(Tb, pts):  # one step: robot j in robot i's body frame, (3, 3, 3)
         return jax.vmap(lambda T: jax.vmap(lambda y: T.inverse() @ y)(pts))(Tb)
 
     r = jax.vmap(jax.vmap(rel))(T_eb, p)  # (N, steps, 3, 3, 3)
-    ptz = s.ptz.in_view(r[:, :, 0] @ R_BODY_PTZ)  # p_base = R^T p_body
-    om2, om3 = s.omni2.in_view(r[:, :, 1]), s.omni3.in_view(r[:, :, 2])
+    ptz = s.ptz.in_view(r[:, :, 0] @ jnp.asarray(R_BODY_PTZ))  # p_base = R^T p_body
+    return s.overhead.in_view(q), ptz, s.omni2.in_view(r[:, :, 1]), s.omni3.in_view(r[:, :, 2])
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_required_robots_in_view(strategy):
+    s, (truth, obs, ok) = _run(strategy)
+    over, ptz, om2, om3 = _sightings(s, truth)
+    np.testing.assert_array_equal(over, obs.overhead_visible)
+    assert np.all(over[ok])
     assert np.all(ptz[ok][:, :, 1:])
     assert np.all(om2[ok][:, :, [0, 2]]) and np.all(om3[ok][:, :, [0, 1]])
     assert np.all(np.isfinite(obs.mutual_pixels[ok][:, :, [0, 0, 1, 1, 2, 2], [1, 2, 0, 2, 0, 1]]))
     # Separation guard.
+    p = np.asarray(truth.T_env_body.translation())
     d = np.linalg.norm(p[:, :, :, None] - p[:, :, None], axis=-1)[ok]
     assert np.all(d[:, :, [0, 0, 1], [1, 2, 2]] >= float(s.min_separation))
 
