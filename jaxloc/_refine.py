@@ -19,13 +19,18 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from ._camera import AbstractCamera
+from ._observations import CycleObservations, CyclePoses, move_start_step, moving_robot
 from ._overhead import _cholesky_solve6
+from ._presets import R_BODY_OMNI, R_BODY_PTZ
 from ._results import raise_if_failed, RESULTS
+from ._scenario import Scenario
 from ._solvers.dlt import identity_like, PoseSolution, where_pose
+from ._strategies import CycleEstimate, overhead_point_ids
 
 
 SOLVERS = ("lm", "gn")
@@ -258,3 +263,317 @@ def refine_overhead_pose(
         atol=atol,
     )
     return raise_if_failed(sol, sol.result, throw)
+
+
+# --------------------------------------------------------------------------------------
+# Joint refinement of a whole cycle.
+
+
+def placement_ids(strategy: str) -> np.ndarray:
+    """Index of the distinct placement (pose) each robot occupies at each step.
+
+    Shape `(steps, 3)`: a robot that does not move keeps its placement (and its pose)
+    across steps. Sequential: 6 placements, concurrent: 7. Placement 0 is C1 at the start
+    of the cycle, the world frame.
+    """
+    return overhead_point_ids(strategy)
+
+
+def _first_occurrence(strategy: str) -> tuple[np.ndarray, np.ndarray]:
+    """`(step, robot)` of the first sighting of each placement, two arrays `(placements,)`."""
+    ids = placement_ids(strategy)
+    n = int(ids.max()) + 1
+    ks, rs = np.zeros(n, np.int32), np.zeros(n, np.int32)
+    for p in range(n):
+        k, r = np.argwhere(ids == p)[0]
+        ks[p], rs[p] = k, r
+    return ks, rs
+
+
+def num_placements(strategy: str) -> int:
+    """Number of distinct robot placements of a cycle (6 sequential, 7 concurrent)."""
+    return int(placement_ids(strategy).max()) + 1
+
+
+def pixel_sigma_per_axis(scenario: Scenario) -> Scalar:
+    """Standard deviation (px) of each pixel coordinate under the scenario's noise model:
+    `pixel_sigma / sqrt(2)` for `"paper"` (radius ~ N(0, sigma), uniform direction, so
+    `E|n|^2 = sigma^2`), `pixel_sigma` for `"gaussian"`."""
+    if scenario.noise_model == "paper":
+        return scenario.pixel_sigma / np.sqrt(2.0)
+    return scenario.pixel_sigma
+
+
+_SIGMA_FLOOR_PX = 1e-6
+
+
+def _safe_norm(x):
+    return _safe_sqrt(jnp.sum(x * x, axis=-1))
+
+
+def _rotations(T: Float[Array, "... 7"]) -> Float[Array, "... 3 3"]:
+    flat = T.reshape(-1, 7)
+    R = jax.vmap(lambda w: jaxlie.SE3(w).rotation().as_matrix())(flat)
+    return R.reshape(T.shape[:-1] + (3, 3))
+
+
+def _predict(T_place, T_over, scenario: Scenario, strategy: str):
+    """Noise-free measurements of a cycle from its placements' and the overhead camera's
+    poses (`wxyz_xyz` arrays `(placements, 7)` and `(7,)`, world frame `W`).
+
+    Returns `(mutual (steps, 3, 3, 2) px, overhead (steps, 3, 2) px, lengths (moves,) m)`;
+    the diagonal of `mutual` is a dummy (finite) value.
+    """
+    dtype = T_place.dtype
+    ids = placement_ids(strategy)
+    T_body = T_place[ids]  # (steps, 3, 7)
+    p = T_body[..., 4:]
+    R = _rotations(T_body)
+    diff = p[:, None, :, :] - p[:, :, None, :]  # [k, i, j] = p_j - p_i
+    rel = jnp.einsum("kiab,kija->kijb", R, diff)  # robot j in robot i's body frame
+    eye = np.broadcast_to(np.eye(3, dtype=bool)[None, :, :, None], rel.shape)
+    rel = jnp.where(eye, jnp.array([1.0, 0.0, 0.0], dtype), rel)
+    M_ptz = jnp.asarray(R_BODY_PTZ, dtype)
+    M_omni = jnp.asarray(R_BODY_OMNI, dtype)
+    # Camera frames through the mounts: p_cam = M^T p_body (as in the simulator).
+    uv_ptz = scenario.ptz.project(jnp.einsum("ab,...a->...b", M_ptz, rel[:, 0]))
+    uv_2 = scenario.omni2.project(jnp.einsum("ab,...a->...b", M_omni, rel[:, 1]))
+    uv_3 = scenario.omni3.project(jnp.einsum("ab,...a->...b", M_omni, rel[:, 2]))
+    mutual = jnp.stack([uv_ptz, uv_2, uv_3], axis=1)
+    R_o = _rotations(T_over)
+    p_cam = jnp.einsum("ab,kja->kjb", R_o, p - T_over[None, None, 4:])
+    overhead = scenario.overhead.project(p_cam)
+    starts, movers = move_start_step(strategy), moving_robot(strategy)
+    lengths = _safe_norm(p[starts + 1, movers] - p[starts, movers])
+    return mutual, overhead, lengths
+
+
+def _visible_masks(T_place, T_over, scenario: Scenario, strategy: str):
+    """Which sightings a camera makes at the given poses (`in_view`), like the simulator:
+    `(mutual (steps, 3, 3), overhead (steps, 3))`, diagonal False."""
+    ids = placement_ids(strategy)
+    T_body = T_place[ids]
+    p = T_body[..., 4:]
+    R = _rotations(T_body)
+    diff = p[:, None, :, :] - p[:, :, None, :]
+    rel = jnp.einsum("kiab,kija->kijb", R, diff)
+    eye = np.broadcast_to(np.eye(3, dtype=bool)[None, :, :, None], rel.shape)
+    rel = jnp.where(eye, jnp.array([1.0, 0.0, 0.0], rel.dtype), rel)
+    M_ptz = jnp.asarray(R_BODY_PTZ, rel.dtype)
+    M_omni = jnp.asarray(R_BODY_OMNI, rel.dtype)
+    vis = jnp.stack(
+        [
+            scenario.ptz.in_view(jnp.einsum("ab,...a->...b", M_ptz, rel[:, 0])),
+            scenario.omni2.in_view(jnp.einsum("ab,...a->...b", M_omni, rel[:, 1])),
+            scenario.omni3.in_view(jnp.einsum("ab,...a->...b", M_omni, rel[:, 2])),
+        ],
+        axis=1,
+    )
+    vis = vis & ~np.eye(3, dtype=bool)[None]
+    p_cam = jnp.einsum("ab,kja->kjb", _rotations(T_over), p - T_over[None, None, 4:])
+    return vis, scenario.overhead.in_view(p_cam)
+
+
+class CycleData(eqx.Module):
+    """Measurements of a cycle with their whitening weights (1 / sigma; 0 = unused).
+
+    **Fields:** `mutual_pixels` `(steps, 3, 3, 2)` px, `mutual_weight` `(steps, 3, 3)`
+    1/px, `overhead_pixels` `(steps, 3, 2)` px, `overhead_weight` `(steps, 3)` 1/px,
+    `odometry` `(moves,)` m, `odometry_weight` `(moves,)` 1/m. Unused entries hold 0.
+    """
+
+    mutual_pixels: Float[Array, "steps 3 3 2"]
+    mutual_weight: Float[Array, "steps 3 3"]
+    overhead_pixels: Float[Array, "steps 3 2"]
+    overhead_weight: Float[Array, "steps 3"]
+    odometry: Float[Array, " moves"]
+    odometry_weight: Float[Array, " moves"]
+
+
+def _odometry_weight(d, sigma):
+    # Zero sigmas (noiseless odometry) fall back to a tiny floor, as in the strategies.
+    floor = 1e-9 + 1e-6 * jnp.max(jnp.abs(d))
+    return 1.0 / jnp.maximum(sigma, floor)
+
+
+def cycle_data(observations: CycleObservations, scenario: Scenario) -> CycleData:
+    """Whitened measurement set of a cycle: NaN pixels (not measured) and the diagonal are
+    masked out; pixel sigma per axis from [`jaxloc.pixel_sigma_per_axis`][]; odometry
+    sigma from `observations.odometry_sigma`."""
+    dtype = observations.mutual_pixels.dtype
+    s_px = jnp.maximum(pixel_sigma_per_axis(scenario).astype(dtype), _SIGMA_FLOOR_PX)
+    mp = observations.mutual_pixels
+    m_ok = jnp.all(jnp.isfinite(mp), axis=-1) & ~np.eye(3, dtype=bool)[None]
+    op = observations.overhead_pixels
+    o_ok = jnp.all(jnp.isfinite(op), axis=-1) & observations.overhead_visible
+    d = observations.odometry
+    d_ok = jnp.isfinite(d) & jnp.isfinite(observations.odometry_sigma)
+    d = jnp.where(d_ok, d, 0.0)
+    return CycleData(
+        mutual_pixels=jnp.where(m_ok[..., None], mp, 0.0),
+        mutual_weight=jnp.where(m_ok, 1.0 / s_px, 0.0),
+        overhead_pixels=jnp.where(o_ok[..., None], op, 0.0),
+        overhead_weight=jnp.where(o_ok, 1.0 / s_px, 0.0),
+        odometry=d,
+        odometry_weight=jnp.where(
+            d_ok, _odometry_weight(d, jnp.where(d_ok, observations.odometry_sigma, 0.0)), 0.0
+        ),
+    )
+
+
+def _unpack(theta, T0_place, T0_over):
+    """Poses from the tangent vector: placement 0 (C1 at the start) is the identity."""
+    n = T0_place.shape[0]
+    d = theta[:-6].reshape(n - 1, 6)
+    moved = jax.vmap(lambda t, dd: jaxlie.manifold.rplus(jaxlie.SE3(t), dd).wxyz_xyz)(
+        T0_place[1:], d
+    )
+    first = jnp.zeros((1, 7), T0_place.dtype).at[0, 0].set(1.0)
+    T_place = jnp.concatenate([first, moved.astype(T0_place.dtype)])
+    T_over = jaxlie.manifold.rplus(jaxlie.SE3(T0_over), theta[-6:]).wxyz_xyz
+    return T_place, T_over.astype(T0_over.dtype)
+
+
+def _whitened(T_place, T_over, data: CycleData, scenario: Scenario, strategy: str):
+    mutual, overhead, lengths = _predict(T_place, T_over, scenario, strategy)
+    r_m = data.mutual_weight[..., None] * (mutual - data.mutual_pixels)
+    r_o = data.overhead_weight[..., None] * (overhead - data.overhead_pixels)
+    r_d = data.odometry_weight * (lengths - data.odometry)
+    return jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
+
+
+def _cycle_residuals(theta, args):
+    T0_place, T0_over, data, scenario, strategy = args
+    T_place, T_over = _unpack(theta, T0_place, T0_over)
+    return _whitened(T_place, T_over, data, scenario, strategy)
+
+
+def cycle_jacobian(T_place, T_over, data: CycleData, scenario: Scenario, strategy: str):
+    """Jacobian of the whitened residuals w.r.t. the cycle's tangent parameters at the
+    given poses: shape `(residuals, 6 (placements - 1) + 6)`."""
+    n = T_place.shape[0]
+    zero = jnp.zeros(6 * n, T_place.dtype)
+    return jax.jacfwd(_cycle_residuals)(zero, (T_place, T_over, data, scenario, strategy))
+
+
+def _estimate_placements(estimate: CycleEstimate, strategy: str):
+    ks, rs = _first_occurrence(strategy)
+    T_body = estimate.poses.T_world_body.wxyz_xyz
+    return T_body[ks, rs], estimate.poses.T_world_overhead.wxyz_xyz
+
+
+@eqx.filter_jit
+def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, rtol, atol):
+    strategy = observations.strategy
+    dtype = observations.mutual_pixels.dtype
+    data = cycle_data(observations, scenario)
+    T0_place, T0_over = _estimate_placements(estimate, strategy)
+    finite0 = jnp.all(jnp.isfinite(T0_place)) & jnp.all(jnp.isfinite(T0_over))
+    ident = jnp.zeros(7, dtype).at[0].set(1.0)
+    T0_place = jnp.where(finite0, T0_place, ident)
+    T0_over = jnp.where(finite0, T0_over, ident)
+    T0_place = T0_place.at[0].set(ident)  # the gauge: C1's start pose is the world frame
+    n = T0_place.shape[0]
+    args = (T0_place, T0_over, data, scenario, strategy)
+    sol = optx.least_squares(
+        _cycle_residuals,
+        _make_solver(solver, rtol, atol),
+        jnp.zeros(6 * n, dtype),
+        args=args,
+        max_steps=max_steps,
+        throw=False,
+    )
+    T_place, T_over = _unpack(sol.value, T0_place, T0_over)
+    finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
+    result = RESULTS.promote(sol.result)
+    result = RESULTS.where(finite, result, RESULTS.no_valid_solution)
+    result = RESULTS.where(
+        estimate.result == RESULTS.successful, result, estimate.result
+    )
+    ok = result == RESULTS.successful
+    T_place = jnp.where(ok, T_place, T0_place)
+    T_over = jnp.where(ok, T_over, T0_over)
+    ids = placement_ids(strategy)
+    T_world_body = jnp.where(ok, T_place[ids], estimate.poses.T_world_body.wxyz_xyz)
+    T_world_over = jnp.where(ok, T_over, estimate.poses.T_world_overhead.wxyz_xyz)
+    poses = CyclePoses(jaxlie.SE3(T_world_body), jaxlie.SE3(T_world_over))
+    mutual, overhead, lengths = _predict(T_place, T_over, scenario, strategy)
+    m_used = data.mutual_weight > 0
+    o_used = data.overhead_weight > 0
+    e2 = jnp.sum(
+        jnp.where(m_used, jnp.sum((mutual - data.mutual_pixels) ** 2, -1), 0.0)
+    ) + jnp.sum(jnp.where(o_used, jnp.sum((overhead - data.overhead_pixels) ** 2, -1), 0.0))
+    count = jnp.maximum(jnp.sum(m_used) + jnp.sum(o_used), 1).astype(dtype)
+    stats = dict(estimate.stats)
+    stats["num_steps"] = sol.stats["num_steps"]
+    stats["rms_pixel_error"] = _safe_sqrt(e2 / count)
+    stats["odometry_rms"] = _safe_sqrt(jnp.mean((lengths - data.odometry) ** 2))
+    return CycleEstimate(poses, estimate.scales, result, stats)
+
+
+def refine_cycle(
+    observations: CycleObservations,
+    scenario: Scenario,
+    estimate: CycleEstimate,
+    *,
+    solver: str = "lm",
+    max_steps: int = 64,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    throw: bool = True,
+) -> CycleEstimate:
+    r"""Joint maximum-likelihood refinement of a whole cycle.
+
+    Unknowns: the pose `T_world_body` of every distinct robot placement (a robot that does
+    not move keeps one pose: 6 placements for the sequential strategy, 7 for the concurrent
+    one; see [`jaxloc.placement_ids`][]) and the overhead camera's optical-frame pose
+    `T_world_overhead`, each as `T0 exp(delta)` around `estimate` (jaxlie right
+    perturbation). The gauge is fixed by holding C1's start pose at the identity (it is the
+    world frame `W`); the metric scale comes from the odometry. Minimises the sum of
+    squared whitened residuals:
+
+    - every mutual sighting, in pixels of the observing camera: robot `i`'s camera at step
+      `k` sees robot `j` at `project(M^T T_world_body[k, i]^{-1} p_j)` with `M` the mount
+      (`R_BODY_PTZ` and `scenario.ptz` for C1, identity and `scenario.omni2/omni3` for C2
+      and C3);
+    - every overhead pixel, `scenario.overhead.project(T_world_overhead^{-1} p_j)`;
+    - every odometry distance, `|p_end - p_start| - d`, sigma `observations.odometry_sigma`.
+
+    Pixel residuals are divided by [`jaxloc.pixel_sigma_per_axis`][]`(scenario)`; NaN
+    pixels (not measured) are ignored.
+
+    **Arguments:**
+
+    - `observations`: a [`jaxloc.CycleObservations`][] with its pixels (`mutual_pixels`,
+        `overhead_pixels`).
+    - `scenario`: a [`jaxloc.Scenario`][]: its cameras (`ptz`, `omni2`, `omni3`,
+        `overhead`), `pixel_sigma` and `noise_model` are used.
+    - `estimate`: the starting point, usually [`jaxloc.localize_cycle`][]`(observations)`.
+    - `solver`: `"lm"` (Levenberg--Marquardt, default) or `"gn"` (Gauss--Newton). Keyword
+        only, as are the following.
+    - `max_steps`, `rtol`, `atol`: the solver's iteration limit and tolerances.
+    - `throw`: raise on failure if `True`; otherwise inspect `result`.
+
+    **Returns:** a [`jaxloc.CycleEstimate`][] (same form as `localize_cycle`'s): poses of
+    every robot at every step and of the overhead camera in `W`, metres. `scales` are
+    copied from `estimate`. `result` is `estimate.result` if that failed (and then the
+    poses are `estimate`'s), else the solver's promoted result. `stats` adds
+    `"num_steps"`, `"rms_pixel_error"` (px, over all measured pixels) and updates
+    `"odometry_rms"` (m).
+
+    Single cycle; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad`.
+    """
+    if solver not in SOLVERS:
+        raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')
+    if not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"`max_steps` must be a positive int; got {max_steps!r}.")
+    if scenario.strategy != observations.strategy:
+        raise ValueError(
+            f"`scenario.strategy` ({scenario.strategy!r}) must match "
+            f"`observations.strategy` ({observations.strategy!r})."
+        )
+    out = _refine_cycle_impl(
+        observations, scenario, estimate, solver=solver, max_steps=max_steps, rtol=rtol,
+        atol=atol,
+    )
+    return raise_if_failed(out, out.result, throw)

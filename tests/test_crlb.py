@@ -1,0 +1,176 @@
+"""Tests of joint cycle refinement (jaxloc._refine.refine_cycle), its covariance and the CRLB.
+
+One module-level jitted pipeline (simulate -> perturbed-truth start -> refine_cycle ->
+cycle_crlb at the truth -> cycle_covariance at the estimate), vmapped over a fixed batch
+of keys, serves the exactness, failure, Monte Carlo and NEES tests of each strategy.
+"""
+
+import functools as ft
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import jaxlie
+import numpy as np
+import pytest
+from jaxloc._crlb import crlb_rmse, cycle_covariance, cycle_crlb
+from jaxloc._observations import CyclePoses
+from jaxloc._refine import _first_occurrence, _predict, refine_cycle
+from jaxloc._results import RESULTS
+from jaxloc._scenario import Scenario
+from jaxloc._simulate import noiseless, simulate_cycle
+from jaxloc._strategies import CycleEstimate
+from scipy.stats import chi2
+
+
+BATCH = 96
+# Levenberg--Marquardt under vmap compiles in ~2x the time of Gauss--Newton: each strategy's
+# pipeline uses one solver, so both solvers are covered with one compilation per strategy.
+SOLVER = {"sequential": "lm", "concurrent": "gn"}
+
+
+def _perturb(T: jaxlie.SE3, key, scale) -> jaxlie.SE3:
+    flat = T.wxyz_xyz.reshape(-1, 7)
+    d = scale * jr.normal(key, (flat.shape[0], 6), flat.dtype)
+    out = jax.vmap(lambda t, dd: jaxlie.manifold.rplus(jaxlie.SE3(t), dd).wxyz_xyz)(flat, d)
+    return jaxlie.SE3(out.reshape(T.wxyz_xyz.shape))
+
+
+def _tangent_errors(est: CyclePoses, truth: CyclePoses, strategy: str):
+    """Stacked `log(T_hat^-1 T_true)` of placements 1.. and the overhead camera, `(n,)`."""
+    ks, rs = _first_occurrence(strategy)
+    a = est.T_world_body.wxyz_xyz[ks[1:], rs[1:]]
+    b = truth.T_world_body.wxyz_xyz[ks[1:], rs[1:]]
+    e = jax.vmap(lambda x, y: jaxlie.manifold.rminus(jaxlie.SE3(x), jaxlie.SE3(y)))(a, b)
+    e_c = jaxlie.manifold.rminus(est.T_world_overhead, truth.T_world_overhead)
+    return jnp.concatenate([e.reshape(-1), e_c])
+
+
+@ft.partial(jax.jit, static_argnames="solver")
+def _pipeline(sim_scenario, scenario, keys, perturb, fail_every, solver):
+    def one(key, i):
+        k_sim, k_pert = jr.split(key)
+        truth, obs, visible = simulate_cycle(sim_scenario, k_sim)
+        failed = (i % fail_every) == 0
+        start = CycleEstimate(
+            CyclePoses(
+                _perturb(truth.poses.T_world_body, k_pert, perturb),
+                _perturb(truth.poses.T_world_overhead, jr.fold_in(k_pert, 1), perturb),
+            ),
+            jnp.ones(obs.num_steps),
+            RESULTS.where(failed, RESULTS.degenerate_configuration, RESULTS.successful),
+            {},
+        )
+        ref = refine_cycle(obs, scenario, start, solver=solver, throw=False)
+        crlb = cycle_crlb(scenario, truth)
+        cov = cycle_covariance(obs, scenario, ref)
+        ks, rs = _first_occurrence(obs.strategy)
+        mutual, overhead, lengths = _predict(
+            truth.poses.T_world_body.wxyz_xyz[ks, rs],
+            truth.poses.T_world_overhead.wxyz_xyz,
+            scenario,
+            obs.strategy,
+        )
+        model_gap = jnp.maximum(
+            jnp.nanmax(jnp.abs(mutual - obs.mutual_pixels)),
+            jnp.nanmax(jnp.abs(overhead - obs.overhead_pixels)),
+        )
+        return {
+            "visible": visible,
+            "result": ref.result._value,
+            "body": ref.poses.T_world_body.wxyz_xyz,
+            "over": ref.poses.T_world_overhead.wxyz_xyz,
+            "start_body": start.poses.T_world_body.wxyz_xyz,
+            "true_body": truth.poses.T_world_body.wxyz_xyz,
+            "true_over": truth.poses.T_world_overhead.wxyz_xyz,
+            "e": _tangent_errors(ref.poses, truth.poses, obs.strategy),
+            "crlb": crlb,
+            "cov": cov,
+            "model_gap": model_gap,
+            "odometry_gap": jnp.max(jnp.abs(lengths - truth.move_distances)),
+        }
+
+    return jax.vmap(one)(keys, jnp.arange(keys.shape[0]))
+
+
+def _run(strategy, key, *, noise=True, perturb=0.0, fail_every=10**6):
+    sc = Scenario.paper(strategy)
+    sim = sc if noise else noiseless(sc)
+    keys = jr.split(key, BATCH)
+    solver = SOLVER[strategy]
+    return jax.tree.map(np.asarray, _pipeline(sim, sc, keys, perturb, fail_every, solver))
+
+
+def _same_pose(a, b, atol):
+    sign = np.sign(np.sum(a[..., :4] * b[..., :4], axis=-1, keepdims=True))
+    np.testing.assert_allclose(np.concatenate([a[..., :4] * sign, a[..., 4:]], -1), b, atol=atol)
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_noiseless_converges_and_failures_pass_through(strategy, getkey):
+    out = _run(strategy, getkey(), noise=False, perturb=0.02, fail_every=8)
+    vis = out["visible"]
+    assert vis.mean() > 0.9
+    # The model reproduces the simulator's pixels and move lengths at the truth.
+    assert np.all(out["model_gap"][vis] < 1e-9)
+    assert np.all(out["odometry_gap"] < 1e-12)
+    failed = np.arange(BATCH) % 8 == 0
+    assert np.all(out["result"][failed] == RESULTS.degenerate_configuration._value)
+    np.testing.assert_array_equal(out["body"][failed], out["start_body"][failed])
+    good = vis & ~failed
+    assert np.all(out["result"][good] == 0)
+    _same_pose(out["body"][good], out["true_body"][good], 1e-8)
+    _same_pose(out["over"][good], out["true_over"][good], 1e-8)
+    # Covariances are symmetric positive definite.
+    for c in (out["crlb"], out["cov"]):
+        assert np.all(c.ok[good])
+        P = c.tangent[good]
+        np.testing.assert_allclose(P, np.swapaxes(P, -1, -2), atol=1e-15)
+        assert np.all(np.linalg.eigvalsh(P) > 0)
+
+
+def _check_against_crlb(out, tol, nees_quantiles):
+    ok = out["visible"] & (out["result"] == 0)
+    assert ok.mean() > 0.9
+    e = out["e"][ok]
+    P = out["crlb"].tangent[ok]
+    n, dim = e.shape
+    # Camera C: centre position (world) and rotation, RMSE vs sqrt(mean trace of the CRLB).
+    c_true = out["true_over"][ok, 4:]
+    c_hat = out["over"][ok, 4:]
+    rmse_pos = np.sqrt(np.mean(np.sum((c_hat - c_true) ** 2, -1)))
+    bound_pos = np.sqrt(np.mean(np.trace(out["crlb"].position[ok, 0], axis1=-2, axis2=-1)))
+    rmse_rot = np.sqrt(np.mean(np.sum(e[:, -3:] ** 2, -1)))
+    bound_rot = np.sqrt(np.mean(np.trace(out["crlb"].rotation[ok, 0], axis1=-2, axis2=-1)))
+    assert abs(rmse_pos / bound_pos - 1) < tol, (rmse_pos, bound_pos)
+    assert abs(rmse_rot / bound_rot - 1) < tol, (rmse_rot, bound_rot)
+    # NEES of the whole state, with the CRLB at the truth and with the estimated covariance.
+    lo, hi = chi2.ppf(nees_quantiles, dim * n) / n
+    nees = np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(P), e))
+    assert lo < nees < hi, (nees, lo, hi, dim)
+    Q = out["cov"].tangent[ok]
+    nees_own = np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(Q), e))
+    assert lo < nees_own < hi, (nees_own, lo, hi, dim)
+    # crlb_rmse agrees with the blocks.
+    pos, rot = crlb_rmse(out["crlb"])
+    np.testing.assert_allclose(
+        np.asarray(pos)[ok, 0] ** 2, np.trace(out["crlb"].position[ok, 0], axis1=-2, axis2=-1)
+    )
+    assert np.asarray(rot).shape == (len(ok), 4)
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_monte_carlo_vs_crlb_quick(strategy, getkey):
+    """A few hundred noisy trials of the paper scenario (paper noise model: the
+    least-squares estimator's covariance depends only on the noise covariance)."""
+    runs = [_run(strategy, getkey(), perturb=0.005) for _ in range(2)]
+    out = jax.tree.map(lambda *x: np.concatenate(x), *runs)
+    _check_against_crlb(out, 0.2, [0.0005, 0.9995])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_monte_carlo_vs_crlb_2000_trials(strategy, getkey):
+    runs = [_run(strategy, getkey(), perturb=0.005) for _ in range(22)]  # 2112 trials
+    out = jax.tree.map(lambda *x: np.concatenate(x), *runs)
+    _check_against_crlb(out, 0.1, [0.025, 0.975])
