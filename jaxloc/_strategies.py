@@ -292,6 +292,18 @@ def localize_cycle(
     **Returns:** a [`jaxloc.CycleEstimate`][] in the world frame `W` = C1's body frame at
     the start of the cycle.
     """
+    (estimate,) = localize_cycle_methods(observations, (method,))
+    return raise_if_failed(estimate, estimate.result, throw)
+
+
+def localize_cycle_methods(
+    observations: CycleObservations, methods: tuple[str, ...]
+) -> list[CycleEstimate]:
+    """[`jaxloc.localize_cycle`][] for several overhead-pose methods at once.
+
+    The ground robots' chain and the scale fit are computed once and shared; only the
+    overhead camera's solve differs. Never raises on traced values (`throw=False`).
+    """
     strategy = observations.strategy
     if strategy == "sequential":
         T, sols = _chain_sequential(observations)
@@ -307,8 +319,6 @@ def localize_cycle(
     T_world_body = jaxlie.SE3(jnp.stack([Tk.wxyz_xyz for Tk in T]))
     positions = T_world_body.translation()
     points, bearings, mask = _overhead_problem(observations, positions)
-    pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
-    T_world_overhead = pose_sol.pose.inverse()
 
     mutual_result = sols[0].result
     for s in sols[1:]:
@@ -316,13 +326,17 @@ def localize_cycle(
     odometry_ok = jnp.all(jnp.isfinite(observations.odometry)) & jnp.all(
         jnp.isfinite(observations.odometry_sigma)
     )
-    result = pose_sol.result
-    result = RESULTS.where(scale_ok, result, RESULTS.scale_unobservable)
-    result = RESULTS.where(mutual_result == RESULTS.successful, result, mutual_result)
-    result = RESULTS.where(odometry_ok, result, RESULTS.nonfinite_observation)
-
-    stats = dict(pose_sol.stats)
-    stats["min_angle"] = jnp.min(jnp.stack([s.stats["min_angle"] for s in sols]))
-    stats["odometry_rms"] = odo_rms
-    estimate = CycleEstimate(CyclePoses(T_world_body, T_world_overhead), scales, result, stats)
-    return raise_if_failed(estimate, result, throw)
+    estimates = []
+    for method in methods:
+        pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
+        T_world_overhead = pose_sol.pose.inverse()
+        result = pose_sol.result
+        result = RESULTS.where(scale_ok, result, RESULTS.scale_unobservable)
+        result = RESULTS.where(mutual_result == RESULTS.successful, result, mutual_result)
+        result = RESULTS.where(odometry_ok, result, RESULTS.nonfinite_observation)
+        stats = dict(pose_sol.stats)
+        stats["min_angle"] = jnp.min(jnp.stack([s.stats["min_angle"] for s in sols]))
+        stats["odometry_rms"] = odo_rms
+        poses = CyclePoses(T_world_body, T_world_overhead)
+        estimates.append(CycleEstimate(poses, scales, result, stats))
+    return estimates

@@ -12,7 +12,7 @@ from ._presets import R_BODY_OVERHEAD
 from ._results import RESULTS, status_code
 from ._scenario import Scenario
 from ._simulate import simulate_cycle
-from ._strategies import CycleEstimate, localize_cycle
+from ._strategies import CycleEstimate, localize_cycle_methods
 
 
 #: Estimators a study can compare. "paper": the paper's linear Eq. 6 for the overhead
@@ -87,8 +87,8 @@ def score(estimate: CyclePoses, truth: CyclePoses):
 
 
 def estimate_all(observations, methods: tuple[str, ...] = METHODS) -> list[CycleEstimate]:
-    """Run every requested estimator on the same observations."""
-    return [localize_cycle(observations, method=m, throw=False) for m in methods]
+    """Run every requested estimator on the same observations (shared ground chain)."""
+    return localize_cycle_methods(observations, methods)
 
 
 def run_trial(
