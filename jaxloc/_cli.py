@@ -20,7 +20,11 @@ PAPER_TABLE1 = {
         "orientation_deg": [0.83, 0.56, 0.86, 1.05],
     },
 }
-METHOD_LABELS = {"paper": "paper Eq. 6", "robust": "jaxloc robust"}
+METHOD_LABELS = {
+    "paper": "paper Eq. 6",
+    "robust": "jaxloc robust",
+    "refined": "jaxloc refined (ML)",
+}
 
 
 def _fmt(x: float, width: int = 7) -> str:
@@ -50,19 +54,31 @@ def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
     for m in methods:
         head += f" {METHOD_LABELS.get(m, m):^23} |"
         sub += f" {'median':>7}{'RMSE':>8}{'p90':>8} |"
+    crlb = summary.get("crlb")
+    if crlb is not None:
+        head += f" {'CRLB':>6} {'effic.':>6}"
+        sub += f" {'RMSE':>6} {'':>6}"
     labels = {"C": "C", "C1": "C1", "C2": "C2", "C3": "C3"}
     if strategy == "concurrent":
         labels["C1"] = "C1 (ref)"
-    for title, key, scale, paper_key in (
-        ("Position error (cm, Euclidean)", "position_m", 100.0, "position_cm"),
+    rows = (
+        ("Position error (cm, Euclidean)", "position_m", 100.0, "position_cm", "position_rmse_m"),
         (
             "Orientation error (deg, mean of |yaw|, |pitch|, |roll| errors)",
             "ypr_mean_abs_rad",
             180.0 / np.pi,
             "orientation_deg",
+            None,
         ),
-        ("Orientation error (deg, geodesic angle)", "rotation_rad", 180.0 / np.pi, None),
-    ):
+        (
+            "Orientation error (deg, geodesic angle)",
+            "rotation_rad",
+            180.0 / np.pi,
+            None,
+            "rotation_rmse_rad",
+        ),
+    )
+    for title, key, scale, paper_key, crlb_key in rows:
         lines.append("")
         lines.append(title)
         lines.append(head)
@@ -74,7 +90,32 @@ def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
                 s = summary["methods"][m]["cameras"][cam][key]
                 med, rmse, p90 = (s[k] * scale for k in ("median", "rmse", "p90"))
                 row += f" {_fmt(med)}{_fmt(rmse, 8)}{_fmt(p90, 8)} |"
+            if crlb is not None and crlb_key is not None and cam in crlb:
+                bound = crlb[cam][crlb_key] * scale
+                best = methods[-1]
+                mc = summary["methods"][best]["cameras"][cam][key]["rmse"] * scale
+                eff = bound / mc if mc > 0 and bound > 0 else float("nan")
+                row += f" {_fmt(bound, 6)} {_fmt(eff, 6)}"
             lines.append(row)
+    if crlb is not None:
+        lines.append("")
+        lines.append(
+            "CRLB RMSE: sqrt of the mean Cramér–Rao bound over the trials' true geometries; "
+            f"efficiency = CRLB RMSE / {METHOD_LABELS.get(methods[-1], methods[-1])} RMSE "
+            "(1 = at the bound)."
+        )
+    nees = summary.get("nees")
+    if nees is not None:
+        parts = []
+        for cam, d in nees.items():
+            if d["n"]:
+                lo, hi = d["interval95"]
+                parts.append(f"{cam} {d['mean']:.2f}")
+        lines.append(
+            "Covariance consistency (refined): mean NEES of final positions "
+            + ", ".join(parts)
+            + f"; expected 3, 95% interval of the mean [{lo:.2f}, {hi:.2f}]."
+        )
     return "\n".join(lines)
 
 

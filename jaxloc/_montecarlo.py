@@ -28,7 +28,10 @@ from ._scenario import Scenario, scenario_to_dict
 from ._trial import METHODS, run_trial
 
 
-FIELDS = ("status", "position", "rotation", "ypr", "position_vector")
+FIELDS = (
+    "status", "position", "rotation", "ypr", "position_vector",
+    "crlb_position_var", "crlb_rotation_var", "nees",
+)
 
 
 def trial_key(seed: int, index):

@@ -55,4 +55,43 @@ def summarize(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
             "failures": dict(sorted(failures.items())),
             "cameras": cameras,
         }
+    if "crlb_position_var" in study:
+        out["crlb"] = crlb_summary(study, methods)
+    if "refined" in methods and "nees" in study:
+        out["nees"] = nees_summary(study, methods)
+    return out
+
+
+def crlb_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
+    """Cramér–Rao predicted RMSE per camera: `sqrt(mean over trials of trace(bound))`.
+
+    Averaged over the trials in which every method succeeded (the same trials the
+    errors are computed on when nothing fails).
+    """
+    ok = np.all(study["status"] == 0, axis=1)
+    out = {}
+    for ci, cam in enumerate(CAMERAS):
+        out[cam] = {
+            "position_rmse_m": float(np.sqrt(np.mean(study["crlb_position_var"][ok, ci]))),
+            "rotation_rmse_rad": float(np.sqrt(np.mean(study["crlb_rotation_var"][ok, ci]))),
+        }
+    return out
+
+
+def nees_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
+    """Mean normalized estimation error squared of each camera's final position under the
+    refined estimate's covariance, with the 95% interval of that mean for a consistent
+    estimator (chi-square with 3 degrees of freedom, normal approximation)."""
+    ok = study["status"][:, methods.index("refined")] == 0
+    out = {}
+    for ci, cam in enumerate(CAMERAS):
+        x = study["nees"][ok, ci]
+        x = x[np.isfinite(x)]
+        half = 1.96 * np.sqrt(2 * 3 / max(x.size, 1))
+        out[cam] = {
+            "mean": float(np.mean(x)) if x.size else float("nan"),
+            "expected": 3.0,
+            "interval95": [3.0 - half, 3.0 + half],
+            "n": int(x.size),
+        }
     return out

@@ -6,18 +6,22 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
+from ._crlb import cycle_covariance, cycle_crlb
 from ._observations import CyclePoses
 from ._pose import rotation_error, ypr_from_rotation
 from ._presets import R_BODY_OVERHEAD
+from ._refine import refine_cycle
 from ._results import RESULTS, status_code
 from ._scenario import Scenario
 from ._simulate import simulate_cycle
 from ._strategies import CycleEstimate, localize_cycle_methods
 
 
-#: Estimators a study can compare. "paper": the paper's linear Eq. 6 for the overhead
-#: camera; "robust": jaxloc's planar-safe P3P-based closed form (the default).
-METHODS = ("paper", "robust")
+#: Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
+#: for the overhead camera; "robust": the same chain with jaxloc's planar-safe P3P-based
+#: overhead pose; "refined": joint maximum-likelihood refinement of the whole cycle
+#: started from "robust".
+METHODS = ("paper", "robust", "refined")
 #: Order of the cameras in every per-camera array: overhead C, then C1, C2, C3.
 CAMERAS = ("C", "C1", "C2", "C3")
 
@@ -39,6 +43,12 @@ class TrialErrors(eqx.Module):
       `(-pi, pi]`), shape `(methods, 4, 3)`.
     - `position_vector`: estimate minus truth (m) in the world frame, shape
       `(methods, 4, 3)`, for covariance checks.
+    - `crlb_position_var`, `crlb_rotation_var`: trace of the Cramér–Rao bound's position
+      (m^2) and rotation (rad^2) blocks for each camera at this trial's true poses,
+      shape `(4,)`; the study's predicted RMSE is the square root of their mean.
+    - `nees`: normalized estimation error squared of each camera's final position under
+      the refined estimate's own first-order covariance, `e^T P^-1 e`, shape `(4,)`
+      (expected value 3 for a consistent estimator; NaN where not computed).
     """
 
     status: Int[Array, " methods"]
@@ -46,6 +56,9 @@ class TrialErrors(eqx.Module):
     rotation: Float[Array, "methods 4"]
     ypr: Float[Array, "methods 4 3"]
     position_vector: Float[Array, "methods 4 3"]
+    crlb_position_var: Float[Array, "4"]
+    crlb_rotation_var: Float[Array, "4"]
+    nees: Float[Array, "4"]
 
 
 def overhead_body(T_world_overhead: jaxlie.SE3) -> jaxlie.SE3:
@@ -86,9 +99,33 @@ def score(estimate: CyclePoses, truth: CyclePoses):
     return jax.vmap(one)(est.wxyz_xyz, tru.wxyz_xyz)
 
 
-def estimate_all(observations, methods: tuple[str, ...] = METHODS) -> list[CycleEstimate]:
+def estimate_all(
+    observations, scenario: Scenario, methods: tuple[str, ...] = METHODS
+) -> list[CycleEstimate]:
     """Run every requested estimator on the same observations (shared ground chain)."""
-    return localize_cycle_methods(observations, methods)
+    closed = tuple(m for m in methods if m != "refined")
+    if "refined" in methods and "robust" not in closed:
+        closed = closed + ("robust",)
+    estimates = dict(zip(closed, localize_cycle_methods(observations, closed)))
+    if "refined" in methods:
+        estimates["refined"] = refine_cycle(
+            observations, scenario, estimates["robust"], throw=False
+        )
+    return [estimates[m] for m in methods]
+
+
+def _nees(error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]) -> Float[Array, "4"]:
+    """`e^T P^-1 e` per camera; NaN where `P` is singular (e.g. the fixed reference)."""
+
+    def one(e, P):
+        # Adjugate inverse of a 3x3 matrix: no LAPACK call in the hot path (DESIGN §8).
+        adj = jnp.stack([jnp.cross(P[1], P[2]), jnp.cross(P[2], P[0]), jnp.cross(P[0], P[1])])
+        det = jnp.dot(P[0], adj[0])
+        scale = jnp.trace(P) ** 3
+        ok = det > 1e-9 * scale
+        return jnp.where(ok, e @ (adj.T @ e) / jnp.where(ok, det, 1.0), jnp.nan)
+
+    return jax.vmap(one)(error, covariance)
 
 
 def run_trial(
@@ -103,9 +140,16 @@ def run_trial(
     """
     truth, observations, all_visible = simulate_cycle(scenario, key)
     fields = []
-    for estimate in estimate_all(observations, methods):
+    nees = jnp.full((4,), jnp.nan, dtype=truth.poses.T_world_overhead.wxyz_xyz.dtype)
+    for method, estimate in zip(methods, estimate_all(observations, scenario, methods)):
         result = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
         pos, rot, ypr, diff = score(estimate.poses, truth.poses)
         fields.append((status_code(result), pos, rot, ypr, diff))
+        if method == "refined":
+            cov = cycle_covariance(observations, scenario, estimate)
+            nees = _nees(diff, cov.position)
     stacked = [jnp.stack(f) for f in zip(*fields)]
-    return TrialErrors(*stacked)
+    bound = cycle_crlb(scenario, truth.poses, observations.strategy)
+    crlb_pos = jnp.trace(bound.position, axis1=-2, axis2=-1)
+    crlb_rot = jnp.trace(bound.rotation, axis1=-2, axis2=-1)
+    return TrialErrors(*stacked, crlb_pos, crlb_rot, nees)
