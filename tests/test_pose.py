@@ -2,10 +2,9 @@ import cv2
 import jax
 import jax.numpy as jnp
 import jaxlie
+import jaxloc
 import numpy as np
 import pytest
-
-import jaxloc
 from jaxloc._mutual import mutual_localization
 
 
