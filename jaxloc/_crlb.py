@@ -23,12 +23,12 @@ reported separately, never summed.
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.scipy.linalg as jsl
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from ._observations import CycleObservations, CyclePoses
 from ._refine import (
+    _cholesky,
     _estimate_placements,
     _first_occurrence,
     _odometry_weight,
@@ -84,6 +84,17 @@ def _final_selection(strategy: str) -> np.ndarray:
     return S
 
 
+def _lower_inverse(L: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """`L^-1` of a lower-triangular `L` by forward substitution (no LAPACK)."""
+    n = L.shape[0]
+    eye = jnp.eye(n, dtype=L.dtype)
+
+    def body(i, Y):
+        return Y.at[i].set((eye[i] - L[i] @ Y) / L[i, i])  # rows >= i of Y are still zero
+
+    return jax.lax.fori_loop(0, n, body, jnp.zeros_like(L))
+
+
 def _spd_inverse(F: Float[Array, "n n"]):
     """Inverse of an SPD matrix via a Jacobi-scaled Cholesky; `(inverse, ok)`, 0 if not PD."""
     dg = jnp.diag(F)
@@ -91,10 +102,11 @@ def _spd_inverse(F: Float[Array, "n n"]):
     d = jnp.where(good, 1.0 / jnp.sqrt(jnp.where(good, dg, 1.0)), 0.0)
     Fn = F * d[:, None] * d[None, :]
     Fn = jnp.where(jnp.all(good), Fn, jnp.eye(F.shape[0], dtype=F.dtype))
-    L = jnp.linalg.cholesky(Fn)
-    ok = jnp.all(good) & jnp.all(jnp.isfinite(L))
+    L = _cholesky(Fn)
+    ok = jnp.all(good) & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diag(L) > 0)
     L = jnp.where(ok, L, jnp.eye(F.shape[0], dtype=F.dtype))
-    inv = jsl.cho_solve((L, True), jnp.eye(F.shape[0], dtype=F.dtype))
+    Y = _lower_inverse(L)
+    inv = Y.T @ Y  # F_n^-1 = L^-T L^-1
     inv = d[:, None] * inv * d[None, :]
     inv = 0.5 * (inv + inv.T)
     ok = ok & jnp.all(jnp.isfinite(inv))
@@ -120,6 +132,38 @@ def _covariance_at(T_place, T_over, data: CycleData, scenario: Scenario, strateg
     )
 
 
+def _covariance_inputs(observations: CycleObservations, scenario: Scenario, estimate):
+    """`(T_place, T_over, data)` of [`jaxloc.cycle_covariance`][]."""
+    strategy = observations.strategy
+    data = cycle_data(observations, scenario)
+    T_place, T_over = _estimate_placements(estimate, strategy)
+    T_place = T_place.at[0].set(jnp.zeros(7, T_place.dtype).at[0].set(1.0))
+    return T_place, T_over, data
+
+
+def _crlb_inputs(scenario: Scenario, truth, strategy: str):
+    """`(T_place, T_over, data)` of [`jaxloc.cycle_crlb`][]: exact measurements, the
+    sightings the cameras make at the truth, the scenario's sigmas."""
+    poses = truth if isinstance(truth, CyclePoses) else truth.poses
+    ks, rs = _first_occurrence(strategy)
+    T_place = poses.T_world_body.wxyz_xyz[ks, rs]
+    T_over = poses.T_world_overhead.wxyz_xyz
+    dtype = T_place.dtype
+    mutual, overhead, lengths = _predict(T_place, T_over, scenario, strategy)
+    m_vis, o_vis = _visible_masks(T_place, T_over, scenario, strategy)
+    s_px = jnp.maximum(pixel_sigma_per_axis(scenario).astype(dtype), _SIGMA_FLOOR_PX)
+    rel = scenario.odometry_sigma_rel.astype(dtype)
+    data = CycleData(
+        mutual_pixels=mutual,
+        mutual_weight=jnp.where(m_vis, 1.0 / s_px, 0.0),
+        overhead_pixels=overhead,
+        overhead_weight=jnp.where(o_vis, 1.0 / s_px, 0.0),
+        odometry=lengths,
+        odometry_weight=_odometry_weight(lengths, rel * lengths),
+    )
+    return T_place, T_over, data
+
+
 def cycle_covariance(
     observations: CycleObservations, scenario: Scenario, estimate: CycleEstimate
 ) -> CycleCovariance:
@@ -136,11 +180,8 @@ def cycle_covariance(
 
     **Returns:** a [`jaxloc.CycleCovariance`][]. Pure; `jit`/`vmap` apply.
     """
-    strategy = observations.strategy
-    data = cycle_data(observations, scenario)
-    T_place, T_over = _estimate_placements(estimate, strategy)
-    T_place = T_place.at[0].set(jnp.zeros(7, T_place.dtype).at[0].set(1.0))
-    return _covariance_at(T_place, T_over, data, scenario, strategy)
+    inputs = _covariance_inputs(observations, scenario, estimate)
+    return _covariance_at(*inputs, scenario, observations.strategy)
 
 
 def cycle_crlb(scenario: Scenario, truth, strategy: str | None = None) -> CycleCovariance:
@@ -165,24 +206,7 @@ def cycle_crlb(scenario: Scenario, truth, strategy: str | None = None) -> CycleC
     RMSEs. Pure and differentiable in the scenario and the poses (formation design).
     """
     strategy = scenario.strategy if strategy is None else strategy
-    poses = truth if isinstance(truth, CyclePoses) else truth.poses
-    ks, rs = _first_occurrence(strategy)
-    T_place = poses.T_world_body.wxyz_xyz[ks, rs]
-    T_over = poses.T_world_overhead.wxyz_xyz
-    dtype = T_place.dtype
-    mutual, overhead, lengths = _predict(T_place, T_over, scenario, strategy)
-    m_vis, o_vis = _visible_masks(T_place, T_over, scenario, strategy)
-    s_px = jnp.maximum(pixel_sigma_per_axis(scenario).astype(dtype), _SIGMA_FLOOR_PX)
-    rel = scenario.odometry_sigma_rel.astype(dtype)
-    data = CycleData(
-        mutual_pixels=mutual,
-        mutual_weight=jnp.where(m_vis, 1.0 / s_px, 0.0),
-        overhead_pixels=overhead,
-        overhead_weight=jnp.where(o_vis, 1.0 / s_px, 0.0),
-        odometry=lengths,
-        odometry_weight=_odometry_weight(lengths, rel * lengths),
-    )
-    return _covariance_at(T_place, T_over, data, scenario, strategy)
+    return _covariance_at(*_crlb_inputs(scenario, truth, strategy), scenario, strategy)
 
 
 def crlb_rmse(covariance: CycleCovariance) -> tuple[Float[Array, "4"], Float[Array, "4"]]:

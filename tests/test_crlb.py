@@ -13,7 +13,14 @@ import jax.random as jr
 import jaxlie
 import numpy as np
 import pytest
-from jaxloc._crlb import crlb_rmse, cycle_covariance, cycle_crlb
+from jaxloc._crlb import (
+    _covariance_at,
+    _covariance_inputs,
+    _crlb_inputs,
+    crlb_rmse,
+    cycle_covariance,
+    cycle_crlb,
+)
 from jaxloc._observations import CyclePoses
 from jaxloc._refine import _first_occurrence, _predict, refine_cycle
 from jaxloc._results import RESULTS
@@ -24,9 +31,9 @@ from scipy.stats import chi2
 
 
 BATCH = 96
-# Levenberg--Marquardt under vmap compiles in ~2x the time of Gauss--Newton: each strategy's
-# pipeline uses one solver, so both solvers are covered with one compilation per strategy.
-SOLVER = {"sequential": "lm", "concurrent": "gn"}
+# Levenberg--Marquardt (the default) under vmap compiles in ~2x the time of Gauss--Newton
+# (~30 s vs ~14 s here): the default run uses Gauss--Newton, the slow test the default LM.
+FAST_SOLVER = "gn"
 
 
 def _perturb(T: jaxlie.SE3, key, scale) -> jaxlie.SE3:
@@ -62,8 +69,16 @@ def _pipeline(sim_scenario, scenario, keys, perturb, fail_every, solver):
             {},
         )
         ref = refine_cycle(obs, scenario, start, solver=solver, throw=False)
-        crlb = cycle_crlb(scenario, truth)
-        cov = cycle_covariance(obs, scenario, ref)
+        # cycle_crlb and cycle_covariance in one trace (stacked inputs, half the compile).
+        inputs = jax.tree.map(
+            lambda a, b: jnp.stack([a, b]),
+            _crlb_inputs(scenario, truth, obs.strategy),
+            _covariance_inputs(obs, scenario, ref),
+        )
+        both = jax.vmap(_covariance_at, in_axes=(0, 0, 0, None, None))(
+            *inputs, scenario, obs.strategy
+        )
+        crlb, cov = (jax.tree.map(lambda x, i=i: x[i], both) for i in range(2))
         ks, rs = _first_occurrence(obs.strategy)
         mutual, overhead, lengths = _predict(
             truth.poses.T_world_body.wxyz_xyz[ks, rs],
@@ -93,12 +108,24 @@ def _pipeline(sim_scenario, scenario, keys, perturb, fail_every, solver):
     return jax.vmap(one)(keys, jnp.arange(keys.shape[0]))
 
 
-def _run(strategy, key, *, noise=True, perturb=0.0, fail_every=10**6):
+def _run(strategy, key, *, noise=True, perturb=0.0, fail_every=10**6, solver=FAST_SOLVER):
     sc = Scenario.paper(strategy)
     sim = sc if noise else noiseless(sc)
     keys = jr.split(key, BATCH)
-    solver = SOLVER[strategy]
     return jax.tree.map(np.asarray, _pipeline(sim, sc, keys, perturb, fail_every, solver))
+
+
+def test_public_wrappers_match_the_stacked_computation(getkey):
+    """cycle_crlb / cycle_covariance wrap what the pipeline stacks; check their output
+    structure by tracing only (no extra compilation)."""
+    sc = Scenario.paper("sequential")
+    truth, obs, _ = jax.eval_shape(simulate_cycle, sc, getkey())
+    crlb = jax.eval_shape(cycle_crlb, sc, truth)
+    est = CycleEstimate(truth.poses, jnp.ones(4), RESULTS.successful, {})
+    cov = jax.eval_shape(cycle_covariance, obs, sc, est)
+    for c in (crlb, cov):
+        assert c.tangent.shape == (36, 36)
+        assert c.position.shape == c.rotation.shape == (4, 3, 3)
 
 
 def _same_pose(a, b, atol):
@@ -151,6 +178,9 @@ def _check_against_crlb(out, tol, nees_quantiles):
     Q = out["cov"].tangent[ok]
     nees_own = np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(Q), e))
     assert lo < nees_own < hi, (nees_own, lo, hi, dim)
+    # The covariance at the estimate is close to the CRLB at the truth.
+    ratio = np.trace(Q, axis1=-2, axis2=-1) / np.trace(P, axis1=-2, axis2=-1)
+    assert abs(np.median(ratio) - 1) < 0.05, np.median(ratio)
     # crlb_rmse agrees with the blocks.
     pos, rot = crlb_rmse(out["crlb"])
     np.testing.assert_allclose(
@@ -161,16 +191,15 @@ def _check_against_crlb(out, tol, nees_quantiles):
 
 @pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
 def test_monte_carlo_vs_crlb_quick(strategy, getkey):
-    """A few hundred noisy trials of the paper scenario (paper noise model: the
-    least-squares estimator's covariance depends only on the noise covariance)."""
-    runs = [_run(strategy, getkey(), perturb=0.005) for _ in range(2)]
-    out = jax.tree.map(lambda *x: np.concatenate(x), *runs)
-    _check_against_crlb(out, 0.2, [0.0005, 0.9995])
+    """BATCH noisy trials of the paper scenario (paper noise model: the least-squares
+    estimator's covariance depends only on the noise covariance). Started near the truth:
+    this checks the estimator's efficiency, not the closed form's basin."""
+    _check_against_crlb(_run(strategy, getkey(), perturb=0.005), 0.2, [0.0005, 0.9995])
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
 def test_monte_carlo_vs_crlb_2000_trials(strategy, getkey):
-    runs = [_run(strategy, getkey(), perturb=0.005) for _ in range(22)]  # 2112 trials
+    runs = [_run(strategy, getkey(), perturb=0.005, solver="lm") for _ in range(22)]  # 2112
     out = jax.tree.map(lambda *x: np.concatenate(x), *runs)
     _check_against_crlb(out, 0.1, [0.025, 0.975])
