@@ -91,6 +91,8 @@ def _pipeline(sim_scenario, scenario, keys, perturb, fail_every, solver):
             jnp.nanmax(jnp.abs(overhead - obs.overhead_pixels)),
         )
         return {
+            "chi2": ref.stats["chi2"],
+            "dof": ref.stats["dof"],
             "visible": visible,
             "result": ref.result._value,
             "body": ref.poses.T_world_body.wxyz_xyz,
@@ -178,6 +180,10 @@ def _check_against_crlb(out, tol, nees_quantiles):
     Q = out["cov"].tangent[ok]
     nees_own = np.mean(np.einsum("ni,nij,nj->n", e, np.linalg.inv(Q), e))
     assert lo < nees_own < hi, (nees_own, lo, hi, dim)
+    # The final cost has mean dof (started near the truth: right basin). The paper's noise
+    # model (signed radius ~ N(0, s), uniform direction) doubles chi-square's variance.
+    chi2_sum, dof_sum = out["chi2"][ok].sum(), out["dof"][ok].sum()
+    assert abs(chi2_sum - dof_sum) < 4.0 * np.sqrt(4.0 * dof_sum), (chi2_sum, dof_sum)
     # The covariance at the estimate is close to the CRLB at the truth.
     ratio = np.trace(Q, axis1=-2, axis2=-1) / np.trace(P, axis1=-2, axis2=-1)
     assert abs(np.median(ratio) - 1) < 0.05, np.median(ratio)
