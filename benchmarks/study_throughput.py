@@ -17,7 +17,6 @@ import time
 
 import jax
 import jax.numpy as jnp
-
 import jaxloc
 
 
@@ -35,7 +34,12 @@ def measure(strategy: str, methods: tuple[str, ...], dtype, trials: int, chunk: 
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
         study = jaxloc.run_study(
-            scenario, trials, seed=0, chunk_size=chunk, methods=methods, out_dir=out,
+            scenario,
+            trials,
+            seed=0,
+            chunk_size=chunk,
+            methods=methods,
+            out_dir=out,
             progress=False,
         )
         elapsed = time.perf_counter() - t0
@@ -61,8 +65,11 @@ def main():
     parser.add_argument("--refined", action="store_true", help="also time the ML refinement")
     args = parser.parse_args()
     rows = []
-    configs = [(("paper", "robust"), jnp.float64), (("robust",), jnp.float64),
-               (("robust",), jnp.float32)]
+    configs = [
+        (("paper", "robust"), jnp.float64),
+        (("robust",), jnp.float64),
+        (("robust",), jnp.float32),
+    ]
     if args.refined:
         configs.append((("paper", "robust", "refined"), jnp.float64))
     for strategy in ("sequential", "concurrent"):
@@ -74,8 +81,12 @@ def main():
         "command": "python benchmarks/study_throughput.py "
         + f"--trials {args.trials} --chunk-size {args.chunk_size}"
         + (" --refined" if args.refined else ""),
-        "machine": {"cpu_count": jax.local_device_count(), "platform": platform.platform(),
-                    "jax": jax.__version__, "python": platform.python_version()},
+        "machine": {
+            "cpu_count": jax.local_device_count(),
+            "platform": platform.platform(),
+            "jax": jax.__version__,
+            "python": platform.python_version(),
+        },
         "rows": rows,
     }
     if args.out:

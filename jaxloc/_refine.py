@@ -582,6 +582,13 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
     stats["chi2"] = jnp.sum(r * r)
     used = 2 * (jnp.sum(m_used) + jnp.sum(o_used)) + jnp.sum(data.odometry_weight > 0)
     stats["dof"] = (used - 6 * n).astype(jnp.int32)
+    # Goodness of fit: under the noise model chi2 ~ chi-square(dof). A cost beyond its
+    # 99.9% quantile (Wilson-Hilferty approximation) means a wrong local minimum (a bad
+    # closed-form start, e.g. the wrong scale branch of the concurrent strategy) or an
+    # outlier: report it instead of returning a confidently wrong pose as successful.
+    k = jnp.maximum(stats["dof"], 1).astype(dtype)
+    q999 = k * (1.0 - 2.0 / (9.0 * k) + 3.0902 * jnp.sqrt(2.0 / (9.0 * k))) ** 3
+    result = RESULTS.where(ok & (stats["chi2"] > q999), RESULTS.inconsistent_fit, result)
     return CycleEstimate(poses, estimate.scales, result, stats)
 
 

@@ -24,6 +24,10 @@ class RESULTS(optx.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     no_valid_solution = "No candidate pose puts every point in front of the camera."
     not_visible = "A required robot was outside a camera's field of view."
     scale_unobservable = "The odometry does not fix the metric scale (zero-length moves)."
+    inconsistent_fit = (
+        "The refined fit's chi-square is implausibly large for the noise model "
+        "(99.9% quantile): a wrong local minimum or an outlier measurement."
+    )
 
 
 def status_code(result: RESULTS) -> Int[Array, "..."]:
