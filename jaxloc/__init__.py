@@ -16,6 +16,12 @@ from ._camera import (
     PinholeCamera as PinholeCamera,
     PTZCamera as PTZCamera,
 )
+from ._crlb import (
+    crlb_rmse as crlb_rmse,
+    cycle_covariance as cycle_covariance,
+    cycle_crlb as cycle_crlb,
+    CycleCovariance as CycleCovariance,
+)
 from ._montecarlo import run_chunk as run_chunk, run_study as run_study, trial_key as trial_key
 from ._mutual import mutual_localization as mutual_localization, MutualSolution as MutualSolution
 from ._observations import (
@@ -46,6 +52,13 @@ from ._presets import (
     R_BODY_OMNI as R_BODY_OMNI,
     R_BODY_OVERHEAD as R_BODY_OVERHEAD,
     R_BODY_PTZ as R_BODY_PTZ,
+)
+from ._refine import (
+    num_placements as num_placements,
+    pixel_sigma_per_axis as pixel_sigma_per_axis,
+    placement_ids as placement_ids,
+    refine_cycle as refine_cycle,
+    refine_overhead_pose as refine_overhead_pose,
 )
 from ._results import (
     RESULTS as RESULTS,
@@ -82,6 +95,7 @@ from ._trial import (
 )
 from ._world import (
     AbstractSurface as AbstractSurface,
+    body_frame_on_surface as body_frame_on_surface,
     body_pose_on_surface as body_pose_on_surface,
     FlatSurface as FlatSurface,
     formation_xy as formation_xy,
