@@ -191,14 +191,25 @@ def _plot(studies: dict, methods, path: str):
     for row, (strategy, study) in enumerate(studies.items()):
         for ci, cam in enumerate(CAMERAS):
             ax = axes[row, ci]
+            errs = {}
             for mi, m in enumerate(methods):
                 ok = study["status"][:, mi] == 0
                 err = 100 * study["position"][ok, mi, ci]
-                if err.size and np.ptp(err) > 0:
-                    hi = np.percentile(err, 99)
-                    ax.hist(err[err <= hi], bins=60, alpha=0.55, label=METHOD_LABELS.get(m, m))
+                errs[m] = err[err > 0]
+            positive = [e for e in errs.values() if e.size]
+            if not positive:
+                ax.text(0.5, 0.5, "reference robot:\nexact by definition", ha="center",
+                        va="center", transform=ax.transAxes)
+                ax.set_axis_off()
+                continue
+            lo = min(np.percentile(e, 0.5) for e in positive)
+            hi = max(np.percentile(e, 99.5) for e in positive)
+            bins = np.logspace(np.log10(lo), np.log10(hi), 60)
+            for m, err in errs.items():
+                ax.hist(err, bins=bins, alpha=0.5, label=METHOD_LABELS.get(m, m))
+            ax.set_xscale("log")
             ax.set_title(f"{strategy}: {cam}")
-            ax.set_xlabel("position error (cm)")
+            ax.set_xlabel("position error (cm, log scale)")
             ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
