@@ -36,6 +36,8 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ._misc import safe_sqrt
+
 
 # Normalized image coordinates are saturated at this magnitude (|x|, |y| <= 1e4, i.e.
 # directions within ~0.006 deg of the image plane). It keeps `project` finite in float32
@@ -159,13 +161,8 @@ def _safe_ratio(x, y, z):
     return jnp.where(ok, x / safe, 0.0), jnp.where(ok, y / safe, 0.0)
 
 
-def _safe_sqrt(x):
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
-
-
 def _normalize3(x, y, z):
-    n = _safe_sqrt(x * x + y * y + z * z)
+    n = safe_sqrt(x * x + y * y + z * z)
     ok = n > 0
     inv = jnp.where(ok, 1.0 / jnp.where(ok, n, 1.0), 0.0)
     # The zero vector has no direction: return the optical axis (finite, unit).
@@ -796,7 +793,7 @@ class OmniCamera(AbstractCamera):
         mx, my = _undistort(mxd, myd, k1, k2, p1, p2, 0.0)
         r2 = mx * mx + my * my
         disc = 1.0 + (1.0 - self.xi * self.xi) * r2
-        lam = (self.xi + _safe_sqrt(disc)) / (r2 + 1.0)
+        lam = (self.xi + safe_sqrt(disc)) / (r2 + 1.0)
         return jnp.stack(_normalize3(lam * mx, lam * my, lam - self.xi), axis=-1)
 
     def projectable(self, points_cam: Float[ArrayLike, "*b 3"]) -> Bool[Array, "*b"]:
@@ -814,7 +811,7 @@ class OmniCamera(AbstractCamera):
         Computed as `atan2(Z, hypot(X, Y))` (accurate everywhere, finite gradients)."""
         p = jnp.asarray(points_cam)
         _check_last_axis("points_cam", p, 3)
-        rho = _safe_sqrt(p[..., 0] ** 2 + p[..., 1] ** 2)
+        rho = safe_sqrt(p[..., 0] ** 2 + p[..., 1] ** 2)
         z = p[..., 2]
         ok = (rho > 0) | (z != 0)
         return jnp.where(ok, jnp.arctan2(jnp.where(ok, z, 0.0), jnp.where(ok, rho, 1.0)), 0.0)

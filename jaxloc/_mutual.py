@@ -21,6 +21,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._misc import safe_norm, safe_normalize
 from ._pose import kabsch
 from ._results import raise_if_failed, RESULTS
 
@@ -47,19 +48,9 @@ class MutualSolution(eqx.Module):
     stats: dict[str, Array]
 
 
-def _unit(v: Float[Array, "3"]) -> Float[Array, "3"]:
-    sq = jnp.sum(v * v)
-    safe = jnp.where(sq > 0, sq, 1.0)
-    return v / jnp.sqrt(safe)
-
-
 def _angle(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
     """Angle between two vectors, accurate for small and near-pi angles."""
-    cross = jnp.cross(a, b)
-    sq = jnp.sum(cross * cross)
-    safe = jnp.where(sq > 0, sq, 1.0)
-    sin_part = jnp.where(sq > 0, jnp.sqrt(safe), 0.0)
-    return jnp.arctan2(sin_part, jnp.dot(a, b))
+    return jnp.arctan2(safe_norm(jnp.cross(a, b)), jnp.dot(a, b))
 
 
 def _others(ref: int) -> tuple[int, int]:
@@ -98,7 +89,7 @@ def mutual_localization(
     off_diagonal = ~np.eye(3, dtype=bool)
     finite = jnp.all(jnp.isfinite(bearings) | ~off_diagonal[:, :, None])
     u = jnp.where(finite, bearings, _nominal_bearings(bearings.dtype))
-    u = jax.vmap(jax.vmap(_unit))(u)
+    u = safe_normalize(u)
 
     psi = jnp.stack([_angle(u[i, j], u[i, k]) for i, (j, k) in enumerate(_pairs())])
     sin_psi = jnp.sin(psi)
@@ -117,7 +108,7 @@ def mutual_localization(
     for m in (j, k):
         n = k if m == j else j
         a = jnp.stack([u[m, ref], u[m, n]])
-        b = jnp.stack([-u[ref, m], _unit(p[n] - p[m])])
+        b = jnp.stack([-u[ref, m], safe_normalize(p[n] - p[m])])
         R[m] = kabsch(a, b).as_matrix()
 
     rotations = jnp.stack([R[i] for i in range(3)])

@@ -11,13 +11,7 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, ArrayLike, Float, Scalar
 
-
-def _safe_norm(x: Float[Array, " n"]) -> Scalar:
-    """Euclidean norm with a zero (not NaN) gradient at `x = 0`."""
-    sq = jnp.sum(x * x)
-    positive = sq > 0
-    safe_sq = jnp.where(positive, sq, 1.0)
-    return jnp.where(positive, jnp.sqrt(safe_sq), 0.0)
+from ._misc import safe_norm
 
 
 def rotation_angle(R: jaxlie.SO3) -> Scalar:
@@ -27,7 +21,7 @@ def rotation_angle(R: jaxlie.SO3) -> Scalar:
     accurate near 0 and near $\pi$ (unlike `acos((tr R - 1) / 2)`).
     """
     q = R.wxyz
-    return 2.0 * jnp.arctan2(_safe_norm(q[1:]), jnp.abs(q[0]))
+    return 2.0 * jnp.arctan2(safe_norm(q[1:]), jnp.abs(q[0]))
 
 
 def rotation_error(R_a: jaxlie.SO3, R_b: jaxlie.SO3) -> Scalar:
@@ -125,6 +119,6 @@ def pose_from_opencv(
 
 def position_error(p_a: Float[Array, "3"], p_b: Float[Array, "3"]) -> Scalar:
     """Euclidean distance between two positions (m), with a finite gradient at zero."""
-    return _safe_norm(p_a - p_b)
+    return safe_norm(p_a - p_b)
 
 

@@ -27,6 +27,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from ._camera import AbstractCamera
+from ._misc import safe_norm, safe_sqrt
 from ._observations import CycleObservations, CyclePoses, move_start_step, moving_robot
 from ._overhead import _cholesky_solve6
 from ._presets import R_BODY_OMNI, R_BODY_PTZ
@@ -116,11 +117,6 @@ def _make_solver(solver: str, rtol: float, atol: float):
     if solver == "gn":
         return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=_NormalCholesky())
     raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')
-
-
-def _safe_sqrt(x):
-    ok = x > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
 
 
 def _robust_factor(s: Float[Array, " n"], loss: str | None, c) -> Float[Array, " n"]:
@@ -223,7 +219,7 @@ def _refine_pose_impl(
     pose = where_pose(success, pose, identity_like(dtype))
     stats = {
         "num_steps": sol.stats["num_steps"],
-        "rms_pixel_error": _safe_sqrt(sq),
+        "rms_pixel_error": safe_sqrt(sq),
         "covariance": jnp.where(success, cov, 0.0),
     }
     return PoseSolution(pose=pose, result=result, stats=stats)
@@ -377,10 +373,6 @@ def pixel_sigma_per_axis(scenario: Scenario) -> Scalar:
 _SIGMA_FLOOR_PX = 1e-6
 
 
-def _safe_norm(x):
-    return _safe_sqrt(jnp.sum(x * x, axis=-1))
-
-
 def _rotations(T: Float[Array, "... 7"]) -> Float[Array, "... 3 3"]:
     flat = T.reshape(-1, 7)
     R = jax.vmap(lambda w: jaxlie.SE3(w).rotation().as_matrix())(flat)
@@ -414,7 +406,7 @@ def _predict(T_place, T_over, scenario: Scenario, strategy: str):
     p_cam = jnp.einsum("ab,kja->kjb", R_o, p - T_over[None, None, 4:])
     overhead = scenario.overhead.project(p_cam)
     starts, movers = move_start_step(strategy), moving_robot(strategy)
-    lengths = _safe_norm(p[starts + 1, movers] - p[starts, movers])
+    lengths = safe_norm(p[starts + 1, movers] - p[starts, movers])
     return mutual, overhead, lengths
 
 
@@ -576,8 +568,8 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
     count = jnp.maximum(jnp.sum(m_used) + jnp.sum(o_used), 1).astype(dtype)
     stats = dict(estimate.stats)
     stats["num_steps"] = sol.stats["num_steps"]
-    stats["rms_pixel_error"] = _safe_sqrt(e2 / count)
-    stats["odometry_rms"] = _safe_sqrt(jnp.mean((lengths - data.odometry) ** 2))
+    stats["rms_pixel_error"] = safe_sqrt(e2 / count)
+    stats["odometry_rms"] = safe_sqrt(jnp.mean((lengths - data.odometry) ** 2))
     r = _whitened(T_place, T_over, data, scenario, strategy)
     stats["chi2"] = jnp.sum(r * r)
     used = 2 * (jnp.sum(m_used) + jnp.sum(o_used)) + jnp.sum(data.odometry_weight > 0)

@@ -28,6 +28,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._misc import adjugate3, safe_norm, safe_normalize
 from ._mutual import mutual_localization
 from ._observations import (
     CycleObservations,
@@ -96,9 +97,7 @@ def _pick(T: jaxlie.SE3, i: int) -> jaxlie.SE3:
 
 
 def _distance(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
-    sq = jnp.sum((a - b) ** 2)
-    safe = jnp.where(sq > 0, sq, 1.0)
-    return jnp.where(sq > 0, jnp.sqrt(safe), 0.0)
+    return safe_norm(a - b)
 
 
 def _odometry_weights(obs: CycleObservations) -> Float[Array, " moves"]:
@@ -191,8 +190,7 @@ def _concurrent_cost_and_jac(s, P, d, w):
 
 def _solve3(A: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
     """Solve a 3x3 system by the adjugate (no LAPACK call; A is a small SPD matrix)."""
-    adj = jnp.stack([jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])], axis=1)
-    det = jnp.dot(A[0], adj[:, 0])
+    adj, det = adjugate3(A)
     safe = jnp.where(jnp.abs(det) > 1e-300, det, 1.0)
     return jnp.where(jnp.abs(det) > 1e-300, adj @ b / safe, 0.0)
 
@@ -263,8 +261,7 @@ def _overhead_problem(obs: CycleObservations, positions: Float[Array, "steps 3 3
     seen = jnp.stack(
         [sum(vis[k, r] for k, r in zip(*np.nonzero(ids == i))) for i in range(n_points)]
     )
-    sq = jnp.sum(summed**2, axis=-1, keepdims=True)
-    mean_bearing = summed / jnp.sqrt(jnp.where(sq > 0, sq, 1.0))
+    mean_bearing = safe_normalize(summed)
     return points, mean_bearing, seen > 0
 
 

@@ -7,6 +7,7 @@ import jaxlie
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
 from ._crlb import cycle_covariance, cycle_crlb
+from ._misc import adjugate3, safe_norm
 from ._observations import CyclePoses
 from ._pose import rotation_error, ypr_from_rotation
 from ._presets import R_BODY_OVERHEAD
@@ -93,8 +94,7 @@ def score(estimate: CyclePoses, truth: CyclePoses):
     def one(e, t):
         e, t = jaxlie.SE3(e), jaxlie.SE3(t)
         diff = e.translation() - t.translation()
-        sq = jnp.sum(diff**2)
-        pos = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+        pos = safe_norm(diff)
         rot = rotation_error(e.rotation(), t.rotation())
         ypr = _wrap(
             ypr_from_rotation(e.rotation(), degrees=False)
@@ -124,12 +124,10 @@ def _nees(error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]) -> Floa
     """`e^T P^-1 e` per camera; NaN where `P` is singular (e.g. the fixed reference)."""
 
     def one(e, P):
-        # Adjugate inverse of a 3x3 matrix: no LAPACK call in the hot path (DESIGN §8).
-        adj = jnp.stack([jnp.cross(P[1], P[2]), jnp.cross(P[2], P[0]), jnp.cross(P[0], P[1])])
-        det = jnp.dot(P[0], adj[0])
-        scale = jnp.trace(P) ** 3
-        ok = det > 1e-9 * scale
-        return jnp.where(ok, e @ (adj.T @ e) / jnp.where(ok, det, 1.0), jnp.nan)
+        # Adjugate inverse: no LAPACK call in the hot path (DESIGN §8).
+        adj, det = adjugate3(P)
+        ok = det > 1e-9 * jnp.trace(P) ** 3
+        return jnp.where(ok, e @ (adj @ e) / jnp.where(ok, det, 1.0), jnp.nan)
 
     return jax.vmap(one)(error, covariance)
 

@@ -27,6 +27,8 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Bool, Float, Scalar
 
+from .._misc import safe_sqrt
+
 
 _GN_STEPS = 3
 
@@ -51,11 +53,6 @@ def _safe_div(num, den, tiny):
     """`num / den`, with `den` replaced by 1 where `|den| <= tiny` (double-where safe)."""
     ok = jnp.abs(den) > tiny
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0), ok
-
-
-def _safe_sqrt(x):
-    pos = x > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
 
 
 def _safe_normalize(v: Float[Array, "3"]) -> tuple[Float[Array, "3"], Scalar]:
@@ -98,7 +95,7 @@ def _cubic_real_root(c2, c1, c0):
     b = (2.0 * c2 * c2 * c2 - 9.0 * c2 * c1) / 27.0 + c0
     disc = b * b / 4.0 + a * a * a / 27.0
     # One real root.
-    sq = _safe_sqrt(disc)
+    sq = safe_sqrt(disc)
     r_one = jnp.cbrt(-0.5 * b + sq) + jnp.cbrt(-0.5 * b - sq)
     # Three real roots (disc <= 0 implies a <= 0): take the largest.
     a_neg = jnp.where(a < 0, a, -1.0)
@@ -127,7 +124,7 @@ def _eig_known_zero(D: Float[Array, "3 3"]):
         + D[0, 0] * D[2, 2] - D[0, 2] * D[2, 0]
         + D[1, 1] * D[2, 2] - D[1, 2] * D[2, 1]
     )
-    root = _safe_sqrt(tr * tr - 4.0 * m)
+    root = safe_sqrt(tr * tr - 4.0 * m)
     sigma1 = jnp.where(tr >= 0, 0.5 * (tr + root), 0.5 * (tr - root))
     sigma2, _ = _safe_div(m, sigma1, 0.0)
     eye = jnp.eye(3, dtype=D.dtype)
@@ -248,7 +245,7 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
         e1, e2, s1, s2 = _eig_known_zero(D0)
         ratio, ok_ratio = _safe_div(-s2, s1, tiny)
         real_split = ok_ratio & (ratio >= 0) & jnp.isfinite(g)
-        s = _safe_sqrt(ratio)
+        s = safe_sqrt(ratio)
 
         def plane(sign):
             # lam^T D0 lam = s1 (e1.lam - s e2.lam)(e1.lam + s e2.lam): plane normal n.
@@ -260,13 +257,13 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
             B = 2.0 * a23 * (w0 * w1 - b13 * w0) + 2.0 * a13 * b23
             C = a23 * (w1 * w1 - 2.0 * b13 * w1 + 1.0) - a13
             disc = B * B - 4.0 * A * C
-            q = -0.5 * (B + jnp.where(B >= 0, 1.0, -1.0) * _safe_sqrt(disc))
+            q = -0.5 * (B + jnp.where(B >= 0, 1.0, -1.0) * safe_sqrt(disc))
             tau1, ok1 = _safe_div(q, A, tiny)
             tau2, ok2 = _safe_div(C, q, tiny)
             tau = jnp.stack([tau1, tau2])
             ok_tau = jnp.stack([ok1, ok2])
             den = tau * tau - 2.0 * b23 * tau + 1.0
-            l3 = _safe_sqrt(_safe_div(a23, den, tiny)[0])
+            l3 = safe_sqrt(_safe_div(a23, den, tiny)[0])
             lam = jnp.stack([(w0 * tau + w1) * l3, tau * l3, l3], axis=1)
             ok = real_split & ok0 & ok_tau & (disc >= 0) & (tau > 0) & (lam[:, 0] > 0)
             return lam, ok
