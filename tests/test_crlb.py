@@ -196,11 +196,13 @@ def _check_against_crlb(out, tol, nees_quantiles):
 
 
 @pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
-def test_monte_carlo_vs_crlb_quick(strategy, getkey):
+def test_monte_carlo_vs_crlb_quick(strategy):
     """BATCH noisy trials of the paper scenario (paper noise model: the least-squares
     estimator's covariance depends only on the noise covariance). Started near the truth:
-    this checks the estimator's efficiency, not the closed form's basin."""
-    _check_against_crlb(_run(strategy, getkey(), perturb=0.005), 0.2, [0.0005, 0.9995])
+    this checks the estimator's efficiency, not the closed form's basin. Fixed seed: with
+    96 heavy-tailed trials the RMSE's own relative spread is ~8%, so a 20% band fails a
+    few percent of random seeds (seen in CI); the 2,000-trial slow test checks 10%."""
+    _check_against_crlb(_run(strategy, jr.key(96), perturb=0.005), 0.2, [0.0005, 0.9995])
 
 
 @pytest.mark.slow
