@@ -123,6 +123,9 @@ class MarkerDetection:
     - `spread`: intensity-weighted RMS radius of the blob (px); NaN if not detected.
     - `area`: pixel count of the blob (px^2); 0 if not detected.
     - `candidates`: blobs of this colour that passed every test (> 1: ambiguous).
+    - `truncated`: the blob touches the image border or the edge of `mask`: part of the
+      marker is cut off and its centroid is biased (by several pixels for a half-cut
+      marker). Callers that need accuracy should treat it as missing.
     """
 
     pixel: np.ndarray
@@ -130,6 +133,7 @@ class MarkerDetection:
     spread: float
     area: float
     candidates: int
+    truncated: bool = False
 
 
 def annulus_mask(image_size: tuple[int, int], annulus) -> np.ndarray:
@@ -291,7 +295,7 @@ def detect_markers(
             out[name] = MarkerDetection(np.full(2, np.nan), False, math.nan, 0.0, 0)
             continue
         best = max(cands, key=lambda c: c[2])
-        out[name] = MarkerDetection(best[0], True, best[1], best[2], len(cands))
+        out[name] = MarkerDetection(best[0], True, best[1], best[2], len(cands), best[3])
     return out
 
 
@@ -359,5 +363,10 @@ def _fine(image, mask, color, x0, y0, x1, y1, min_area, max_area, max_elongation
             continue
         cu, cv = mo["m10"] / s, mo["m01"] / s
         spread = math.sqrt(max((mo["mu20"] + mo["mu02"]) / s, 0.0))
-        out.append((np.array([cu + x0, cv + y0]), spread, area))
+        bx, by, bw, bh = stats[lab, :4]
+        truncated = bool(
+            bx + x0 <= 0 or by + y0 <= 0 or bx + bw + x0 >= w or by + bh + y0 >= h
+            or (roi_mask is not None and np.any(roi_mask[d2 > 0] == 0))
+        )
+        out.append((np.array([cu + x0, cv + y0]), spread, area, truncated))
     return out

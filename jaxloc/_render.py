@@ -189,16 +189,20 @@ def _paint(img: np.ndarray, y0: int, x0: int, cov: np.ndarray, bgr) -> None:
     patch += c * np.asarray(bgr, np.float32)[None, None, :]
 
 
-def _draw_distractors(img, rng, n: int, mask=None) -> list[dict[str, Any]]:
+def _draw_distractors(img, rng, n: int, mask=None, keep_out=()) -> list[dict[str, Any]]:
     """Distractors: blobs of colours no robot wears, plus blobs of the robots' own hues
-    that a detector must reject by shape or size (a long thin stripe, a speck)."""
+    that a detector must reject by shape or size (a long thin stripe, a speck). They are
+    kept 40 px away from the `keep_out` points (the markers): a distractor touching a
+    marker merges with it, which no colour detector can undo."""
     h, w = img.shape[:2]
     out = []
+    keep = np.asarray(keep_out, np.float64).reshape(-1, 2)
     for k in range(n):
         kind = k % 4
-        for _ in range(50):
+        for _ in range(100):
             u, v = rng.uniform(20, w - 20), rng.uniform(20, h - 20)
-            if mask is None or mask[int(v), int(u)]:
+            far = keep.size == 0 or np.min(np.hypot(keep[:, 0] - u, keep[:, 1] - v)) > 40
+            if (mask is None or mask[int(v), int(u)]) and far:
                 break
         if kind in (0, 1):  # other hue, marker-like disc
             bgr = _DISTRACTOR_BGR[int(rng.integers(len(_DISTRACTOR_BGR)))]
@@ -266,7 +270,8 @@ def render_markers(
 
     **Returns:** `(image, truth)`: a `uint8` BGR image `(height, width, 3)` and, per
     marker, a dict with `name`, `visible` (drawn at least partly inside the image and,
-    for an omnidirectional camera, the mirror's annulus), `center_px` (projection of the
+    for an omnidirectional camera, the mirror's annulus), `truncated` (partly cut by the
+    image border or the annulus), `center_px` (projection of the
     sphere's centre), `centroid_px` (centroid of the drawn silhouette, clipped to the
     image/annulus), `area_px`, `bgr`. Markers are painted far to near (occlusion).
     """
@@ -287,11 +292,14 @@ def render_markers(
         ring_mask = (rr >= r_in - 6) & (rr <= r_out + 6)
         img[~ring_mask] = 8.0  # outside the mirror: dark
         img[rr < r_in - 6] = 45.0  # the robot's own body reflected at the centre
-    distractor_info = _draw_distractors(img, rng, distractors, ring_mask)
     truth: list[dict[str, Any]] = []
+    keep_out = []
     if n:
         poly, center, ok = _silhouettes(camera, jnp.asarray(p), radius)
         poly, center, ok = np.asarray(poly), np.asarray(center), np.asarray(ok)
+        # Keep distractors clear of every marker's outline (centre and rim points).
+        keep_out = [q for i in range(n) if ok[i] for q in poly[i][::8]]
+    distractor_info = _draw_distractors(img, rng, distractors, ring_mask, keep_out)
     order = np.argsort(-np.linalg.norm(p, axis=-1)) if n else []
     rec: dict[int, dict[str, Any]] = {}
     for i in order:
@@ -302,6 +310,12 @@ def render_markers(
         if not ok[i]:
             continue
         entry["center_px"] = center[i].tolist()
+        pu, pv = poly[i][:, 0], poly[i][:, 1]
+        cut = bool(np.any((pu < 0.5) | (pu > w - 1.5) | (pv < 0.5) | (pv > h - 1.5)))
+        if ring_mask is not None:
+            rr_p = np.hypot(pu - cx, pv - cy)
+            cut = cut or bool(np.any((rr_p < r_in - 6) | (rr_p > r_out + 6)))
+        entry["truncated"] = cut
         res = _raster_polygon(poly[i], (h, w))
         if res is None:
             continue
@@ -502,3 +516,60 @@ def render_chessboard(
         else np.asarray(camera.projectable(jnp.asarray(p_cam)))  # fmt: skip
     corners = np.where(vis[:, None], corners, np.nan)
     return out, corners, obj
+
+
+def _polygon_area_centroid(poly: np.ndarray) -> tuple[float, np.ndarray]:
+    x, y = poly[:, 0], poly[:, 1]
+    x1, y1 = np.roll(x, -1), np.roll(y, -1)
+    cross = x * y1 - x1 * y
+    a = 0.5 * cross.sum()
+    if abs(a) < 1e-12:
+        return 0.0, poly.mean(0)
+    cx = ((x + x1) * cross).sum() / (6 * a)
+    cy = ((y + y1) * cross).sum() / (6 * a)
+    return abs(a), np.array([cx, cy])
+
+
+@eqx.filter_jit
+def _unproject1(camera: AbstractCamera, uv: Float[Array, "2"]) -> Float[Array, "3"]:
+    return camera.unproject(uv)
+
+
+def sphere_center_pixel(
+    camera: AbstractCamera, centroid: Float[ArrayLike, "2"], area: float, iterations: int = 3
+) -> np.ndarray:
+    r"""Pixel of a spherical marker's centre from the centroid and area of its blob.
+
+    An off-axis sphere images as an (approximately) elliptical blob whose centroid is not
+    the projection of the sphere's centre (the outline is the image of the tangent cone,
+    wider on the side away from the axis); the offset grows with the angular radius
+    squared and with the lens' nonlinearity: 0.2--0.5 px for the paper's cameras at 1--2 m
+    with a 6 cm marker. Solved through the camera model: the angular radius from the blob
+    area, then fixed-point iterations on the centre direction so that the silhouette's
+    area centroid matches the measured one. Works for any central camera model.
+
+    **Arguments:** `camera`; `centroid` `(u, v)` px; `area` of the blob (px^2);
+    `iterations` of the fixed point.
+
+    **Returns:** the corrected pixel `(2,)`.
+    """
+    c = np.asarray(centroid, np.float64)
+    x = c.copy()
+    a = np.asarray(_unproject1(camera, jnp.asarray(x)))
+    probe = 0.01
+    poly, _, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0), 10.0 * math.sin(probe))
+    a1, _ = _polygon_area_centroid(np.asarray(poly[0]))
+    if not bool(ok[0]) or a1 <= 0 or not area > 0:
+        return c
+    alpha = probe * math.sqrt(area / a1)
+    if not alpha < 0.5:
+        return c
+    r = 10.0 * math.sin(alpha)
+    for _ in range(iterations):
+        a = np.asarray(_unproject1(camera, jnp.asarray(x)))
+        poly, center, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0), r)
+        if not bool(ok[0]):
+            return c
+        _, cen = _polygon_area_centroid(np.asarray(poly[0]))
+        x = x + (c - cen)
+    return x
