@@ -342,11 +342,18 @@ def render_markers(
     return image, truth
 
 
+def _rt(wxyz_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation matrix and translation of one wxyz_xyz pose."""
+    T = jaxlie.SE3(jnp.asarray(wxyz_xyz))
+    return np.asarray(T.rotation().as_matrix()), np.asarray(T.translation())
+
+
 def _rel_in_camera(T_world_body: jaxlie.SE3, k: int, i: int, mount: np.ndarray) -> np.ndarray:
     """Positions of the three robots at step `k` in robot `i`'s camera frame."""
     T = np.asarray(T_world_body.wxyz_xyz[k])
-    Ts = [jaxlie.SE3(jnp.asarray(T[j])) for j in range(3)]
-    p_body = np.stack([np.asarray(Ts[i].inverse() @ Ts[j].translation()) for j in range(3)])
+    R_i, t_i = _rt(T[i])
+    p = T[:, 4:]
+    p_body = (p - t_i) @ R_i  # R_i^T (p_j - t_i), row-wise
     return p_body @ mount  # p_cam = M^T p_body, row-wise
 
 
@@ -390,9 +397,10 @@ def render_cycle(
     per_image: dict[str, Any] = {}
     names = ("C1", "C2", "C3")
     T_over = poses.T_world_overhead
+    R_o, t_o = _rt(np.asarray(T_over.wxyz_xyz))
     for k in range(steps):
-        p_world = np.asarray(poses.T_world_body.translation()[k])
-        p_over = np.asarray(T_over.inverse() @ jnp.asarray(p_world))
+        p_world = np.asarray(poses.T_world_body.wxyz_xyz[k])[:, 4:]
+        p_over = (p_world - t_o) @ R_o
         jobs = [("C", scenario.overhead, p_over, (0, 1, 2))]
         jobs.append(("C1", scenario.ptz, _rel_in_camera(poses.T_world_body, k, 0, R_BODY_PTZ),
                      (1, 2)))  # fmt: skip
@@ -449,6 +457,23 @@ def _board_coords(camera: AbstractCamera, T_board_cam: jaxlie.SE3, pixels: Float
     return xy, ok
 
 
+_CHUNK = 32768
+
+
+def _board_coords_chunked(camera, T_board_cam, pix: np.ndarray):
+    n = pix.shape[0]
+    xy_out, ok_out = np.empty((n, 2)), np.empty(n, bool)
+    for a in range(0, n, _CHUNK):
+        part = pix[a : a + _CHUNK]
+        m = part.shape[0]
+        padded = np.zeros((_CHUNK, 2))
+        padded[:m] = part
+        xy, ok = _board_coords(camera, T_board_cam, jnp.asarray(padded))
+        xy_out[a : a + m] = np.asarray(xy)[:m]
+        ok_out[a : a + m] = np.asarray(ok)[:m]
+    return xy_out, ok_out
+
+
 def render_chessboard(
     camera: AbstractCamera,
     T_cam_board: jaxlie.SE3,
@@ -488,23 +513,47 @@ def render_chessboard(
     w, h = camera.image_size
     s = int(supersample)
     off = (np.arange(s) + 0.5) / s - 0.5
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    img = np.zeros((h, w), np.float64)
     T_board_cam = T_cam_board.inverse()
-    for dy in off:
-        for dx in off:
-            pix = np.stack([(uu + dx).ravel(), (vv + dy).ravel()], -1)
-            xy, ok = _board_coords(camera, T_board_cam, jnp.asarray(pix))
-            xy, ok = np.asarray(xy) / square, np.asarray(ok)
-            i = np.floor(xy[:, 0]).astype(np.int64)
-            j = np.floor(xy[:, 1]).astype(np.int64)
-            inside = (xy[:, 0] >= -1) & (xy[:, 0] < cols) & (xy[:, 1] >= -1) & (xy[:, 1] < rows)
-            margin = ((xy[:, 0] >= -1 - border) & (xy[:, 0] < cols + border)
-                      & (xy[:, 1] >= -1 - border) & (xy[:, 1] < rows + border))  # fmt: skip
-            black = inside & ((i + j) % 2 == 0)
-            val = np.where(ok & margin, np.where(black, 20.0, 235.0), 90.0)
-            img += val.reshape(h, w)
-    img /= s * s
+    # Only the pixels near the board's image are traced (its outline, margin included,
+    # projected through the camera), in fixed-size chunks: one compilation per camera.
+    t = np.linspace(0.0, 1.0, 64)
+    lo_x, hi_x = (-1 - border) * square, (cols + border) * square
+    lo_y, hi_y = (-1 - border) * square, (rows + border) * square
+    edge = np.concatenate([
+        np.stack([lo_x + t * (hi_x - lo_x), np.full_like(t, lo_y)], -1),
+        np.stack([lo_x + t * (hi_x - lo_x), np.full_like(t, hi_y)], -1),
+        np.stack([np.full_like(t, lo_x), lo_y + t * (hi_y - lo_y)], -1),
+        np.stack([np.full_like(t, hi_x), lo_y + t * (hi_y - lo_y)], -1),
+    ])  # fmt: skip
+    edge3 = np.c_[edge, np.zeros(len(edge))]
+    p_edge = np.asarray(jax.vmap(lambda q: T_cam_board @ q)(jnp.asarray(edge3)))
+    uv_edge = np.asarray(camera.project(jnp.asarray(p_edge)))
+    if np.all(np.asarray(camera.projectable(jnp.asarray(p_edge)))):
+        x0 = int(max(np.floor(uv_edge[:, 0].min()) - 4, 0))
+        x1 = int(min(np.ceil(uv_edge[:, 0].max()) + 5, w))
+        y0 = int(max(np.floor(uv_edge[:, 1].min()) - 4, 0))
+        y1 = int(min(np.ceil(uv_edge[:, 1].max()) + 5, h))
+    else:
+        x0, y0, x1, y1 = 0, 0, w, h
+    img = np.full((h, w), 90.0)
+    if x1 > x0 and y1 > y0:
+        uu, vv = np.meshgrid(np.arange(x0, x1, dtype=np.float64),
+                             np.arange(y0, y1, dtype=np.float64))  # fmt: skip
+        acc = np.zeros(uu.size)
+        for dy in off:
+            for dx in off:
+                pix = np.stack([(uu + dx).ravel(), (vv + dy).ravel()], -1)
+                xy, ok = _board_coords_chunked(camera, T_board_cam, pix)
+                xy = xy / square
+                i = np.floor(xy[:, 0]).astype(np.int64)
+                j = np.floor(xy[:, 1]).astype(np.int64)
+                inside = ((xy[:, 0] >= -1) & (xy[:, 0] < cols) & (xy[:, 1] >= -1)
+                          & (xy[:, 1] < rows))  # fmt: skip
+                margin = ((xy[:, 0] >= -1 - border) & (xy[:, 0] < cols + border)
+                          & (xy[:, 1] >= -1 - border) & (xy[:, 1] < rows + border))  # fmt: skip
+                black = inside & ((i + j) % 2 == 0)
+                acc += np.where(ok & margin, np.where(black, 20.0, 235.0), 90.0)
+        img[y0:y1, x0:x1] = acc.reshape(uu.shape) / (s * s)
     rng = numpy_rng(key) if key is not None else np.random.default_rng(0)
     out = _finish(img.astype(np.float32), rng, blur_sigma, noise_sigma if key is not None else 0.0,
                   None)  # fmt: skip
