@@ -237,7 +237,8 @@ def load_team(path: str | os.PathLike) -> Team:
                 )
             cam = eqx.tree_at(
                 lambda c: (c.elevation_min, c.elevation_max), cam,
-                (jnp.asarray(math.radians(band[0])), jnp.asarray(math.radians(band[1]))),
+                (jnp.asarray(math.radians(band[0]), dtype=cam.xi.dtype),
+                 jnp.asarray(math.radians(band[1]), dtype=cam.xi.dtype)),
             )  # fmt: skip
         cameras[r] = cam
         if r != "C":
