@@ -3,6 +3,7 @@ omnidirectional calibration on rendered boards, camera files round trip, clear e
 
 import argparse
 import glob
+import json
 import math
 import os
 
@@ -15,7 +16,6 @@ import numpy as np
 import pytest
 import yaml
 from jaxloc._calibrate import (
-    calibrate_omni,
     calibrate_pinhole,
     camera_from_kalibr,
     find_corners,
@@ -44,11 +44,15 @@ def _left_images():
     return sorted(glob.glob(os.path.join(DATA, "left*.jpg")))
 
 
-def test_pinhole_calibration_matches_published_reference():
+def test_pinhole_calibration_matches_published_reference(capsys):
     images = _left_images()
     assert len(images) == 13
     cal = calibrate_pinhole(images, (9, 6), 0.025, fix_aspect_ratio=True)
     K, dist, size = cal.camera.to_opencv()
+    with capsys.disabled():
+        print(f"\nleft01-14: f {K[0, 0]:.4f} ({100 * (K[0, 0] - REF_F) / REF_F:+.4f}% vs "
+              f"{REF_F}), cx {K[0, 2]:.4f} ({K[0, 2] - REF_CX:+.4f}), cy {K[1, 2]:.4f} "
+              f"({K[1, 2] - REF_CY:+.4f}), k1 {dist[0]:.5f}, RMS {cal.rms:.4f} px")  # fmt: skip
     assert size == (640, 480) and not cal.rejected
     assert abs(K[0, 0] - REF_F) / REF_F < 1e-3
     assert K[0, 0] == K[1, 1]
@@ -113,24 +117,42 @@ def _omni_boards(n):
     return out
 
 
-def test_omni_calibration_recovers_true_parameters():
+def test_omni_calibration_recovers_true_parameters(tmp_path, capsys):
     boards = _omni_boards(10)
     # The rendered corners, detected by OpenCV, are within a few tenths of a pixel.
     for img, truth in boards[:3]:
         c = find_corners(img, BOARD, window=5)
         if c is not None:
             assert np.nanmax(np.linalg.norm(c - truth, axis=-1)) < 0.3
-    cal = calibrate_omni([img for img, _ in boards], BOARD, SQUARE)
-    assert len(cal.used) >= 7
-    est = cal.camera
+    paths = []
+    for k, (img, _) in enumerate(boards):
+        paths.append(str(tmp_path / f"omni{k:02d}.png"))
+        cv2.imwrite(paths[-1], img)
+    # Through the command line: `jaxloc calibrate --model omni ...`.
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    out, report = tmp_path / "omni.yaml", tmp_path / "omni_report.json"
+    argv = ["calibrate", "--model", "omni", "--board", "9x6", "--square", str(SQUARE),
+            "--out", str(out), "--json", str(report), *paths]  # fmt: skip
+    args = parser.parse_args(argv)
+    assert args.func(args) == 0
+    capsys.readouterr()
+    summary = json.loads(report.read_text())
+    std, est = summary["std"], load_camera(out)
+    assert isinstance(est, jaxloc.OmniCamera)
+    assert len(summary["per_view_rms_px"]) >= 7
     true = {"xi": 0.9, "fx": 190.0, "fy": 188.0, "cx": 322.0, "cy": 236.0}
+    with capsys.disabled():
+        print("\nomni calibration (true, estimate, std):",
+              {n: (v, round(float(getattr(est, n)), 4), round(std[n], 4)) for n, v in true.items()},
+              "RMS px", round(summary["rms_px"], 4))  # fmt: skip
     for name, v in true.items():
         got = float(getattr(est, name))
         # Within 4 reported standard deviations, and the deviations are informative.
-        assert abs(got - v) < 4 * cal.std[name] + 1e-9, (name, got, v, cal.std[name])
+        assert abs(got - v) < 4 * std[name] + 1e-9, (name, got, v, std[name])
     assert abs(float(est.cx) - 322.0) < 0.5 and abs(float(est.cy) - 236.0) < 0.5
-    assert cal.std["xi"] < 0.1 and cal.std["fx"] < 8.0
-    assert cal.rms < 0.15
+    assert std["xi"] < 0.1 and std["fx"] < 8.0
+    assert summary["rms_px"] < 0.15
     # xi, f and k1 are correlated; what matters is the mapping pixels <-> bearings over
     # the elevation band: compare bearings of the same pixels.
     az = np.linspace(0, 2 * math.pi, 36, endpoint=False)
@@ -140,6 +162,8 @@ def test_omni_calibration_recovers_true_parameters():
     uv = np.asarray(OMNI_TRUE.project(jnp.asarray(p)))
     b = np.asarray(est.unproject(jnp.asarray(uv)))
     ang = np.degrees(np.arccos(np.clip(np.sum(b * p, -1), -1, 1)))
+    with capsys.disabled():
+        print(f"omni calibration: max bearing difference over the band {ang.max():.4f} deg")
     assert ang.max() < 0.15, ang.max()
 
 

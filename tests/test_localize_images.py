@@ -190,8 +190,11 @@ def test_refined_with_covariance_from_images(cycle):
     res = localize_images(cycle["team"], refine=True)
     assert res.method == "refined", res.notes
     assert res.covariance is not None and bool(res.covariance.ok)
-    pos, _ = _errors(res.estimate, cycle["truth"])
+    pos, rot = _errors(res.estimate, cycle["truth"])
     pos_rmse, _ = jaxloc.crlb_rmse(res.covariance)
+    print("refined image errors (cm):", np.round(100 * pos, 3), "(deg):",
+          np.round(np.degrees(rot), 4), "predicted std (cm):",
+          np.round(100 * np.asarray(pos_rmse), 3))  # fmt: skip
     # Within 3 predicted standard deviations (C1 is the world frame: skip it at zero).
     assert np.all(pos <= 3 * np.asarray(pos_rmse) + 1e-6), (pos, pos_rmse)
     d = res.to_dict()
