@@ -49,6 +49,7 @@ are preserved to first order.
 """
 
 import dataclasses
+import json
 import math
 import os
 from typing import Any
@@ -78,7 +79,7 @@ from ._refine import refine_cycle
 from ._render import annulus_of, sphere_center_pixel
 from ._results import RESULTS, status_code, status_names
 from ._scenario import Scenario
-from ._strategies import localize_cycle
+from ._strategies import localize_cycle, overhead_point_ids
 
 
 ROBOTS = ("C", "C1", "C2", "C3")
@@ -473,8 +474,6 @@ def observations_from_detections(
                 over_vis[k, j] = True
                 opix[k, j] = dt.pixel
     # Distinct robot placements seen by C (robots that did not move keep theirs).
-    from ._strategies import overhead_point_ids
-
     ids = overhead_point_ids(team.strategy)
     seen = {int(ids[k, j]) for k in range(steps) for j in range(3) if over_vis[k, j]}
     if len(seen) < 4:
@@ -635,8 +634,7 @@ def localize_images(
 
 
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
-    import json
-
+    """Write `data` as JSON to `path` atomically (temporary file, then rename)."""
     tmp = f"{path}.tmp{os.getpid()}"
     with open(tmp, "w", encoding="utf-8") as f:
         json.dump(data, f, indent=2)

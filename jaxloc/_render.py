@@ -250,6 +250,7 @@ def render_markers(
     lighting: float = 0.25,
     background_level: float = 120.0,
     names: Any = None,
+    info: dict[str, Any] | None = None,
 ) -> tuple[np.ndarray, list[dict[str, Any]]]:
     r"""Render coloured spherical markers seen by one camera.
 
@@ -267,6 +268,8 @@ def render_markers(
       `lighting`: strength of the multiplicative illumination change (0 = none).
     - `background_level`: mean grey level of the background.
     - `names`: optional label of each marker for the ground truth.
+    - `info`: optional dict that receives `info["distractors"]`, the distractors drawn
+      (kind, colour, centroid).
 
     **Returns:** `(image, truth)`: a `uint8` BGR image `(height, width, 3)` and, per
     marker, a dict with `name`, `visible` (drawn at least partly inside the image and,
@@ -330,15 +333,13 @@ def render_markers(
         s = float(cov.sum())
         centroid = [float((cov * xx).sum() / s), float((cov * yy).sum() / s)]
         entry.update(visible=True, area_px=s, centroid_px=centroid)
-    # Nearer markers painted later may hide farther ones: recompute visible areas would
-    # need the full z-buffer; the truth keeps the unoccluded silhouette (documented).
+    # Nearer markers are painted later and hide farther ones; the truth keeps each
+    # marker's own (unoccluded) silhouette: overlapping markers are not a centroid test.
     truth = [rec[i] for i in range(n)]
     gain = _lighting(rng, h, w, lighting)
     image = _finish(img, rng, blur_sigma, noise_sigma, gain)
-    for t in truth:
-        t["distractors"] = None
-    if truth:
-        truth[0]["distractors"] = distractor_info
+    if info is not None:
+        info["distractors"] = distractor_info
     return image, truth
 
 
@@ -410,13 +411,16 @@ def render_cycle(
                      (0, 1)))  # fmt: skip
         for c, (cam_name, camera, pts, seen) in enumerate(jobs):
             sel = list(seen)
+            extra: dict[str, Any] = {}
             img, t = render_markers(
                 camera, pts[sel], key=keys[4 * k + c], colors=[colors[j] for j in sel],
                 radius=radius, blur_sigma=blur_sigma, noise_sigma=noise_sigma,
                 distractors=distractors, lighting=lighting, names=[names[j] for j in sel],
+                info=extra,
             )  # fmt: skip
             images[(k, cam_name)] = img
-            per_image[f"step{k}_{cam_name}"] = {"step": k, "camera": cam_name, "markers": t}
+            per_image[f"step{k}_{cam_name}"] = {"step": k, "camera": cam_name, "markers": t,
+                                                "distractors": extra["distractors"]}  # fmt: skip
     gt = {
         "strategy": scenario.strategy,
         "marker_radius_m": radius,
