@@ -166,8 +166,12 @@ def _cmd_design(args) -> int:
     }
     # Compare both formations on fresh draws (not the ones optimized on).
     k_fresh = jr.key(args.seed + 1_000_003)
+    baseline = Formation.from_scenario(scenario)  # the scenario's own, random moves
     vals = {}
-    for name, f in (("initial", res.initial), ("optimized", best)):
+    runs = [("initial", res.initial), ("optimized", best)]
+    if fixed:
+        runs.append(("scenario", baseline))
+    for name, f in runs:
         vals[name] = float(objective_value(
             f, scenario, key=k_fresh, objective=args.objective, criterion=args.criterion,
             weights=weights, num_draws=max(args.draws, 64),
@@ -183,10 +187,14 @@ def _cmd_design(args) -> int:
           f"{show(float(res.objective))}")
     print(f"Objective {unit}, on fresh draws:      {show(vals['initial'])} -> "
           f"{show(vals['optimized'])}")
+    if fixed:
+        print(f"Objective {unit} of the scenario's own formation (random moves, fresh draws): "
+              f"{show(vals['scenario'])}")
     margins = _margins(best, scenario, limits, args.seed)
     report["objective"] = {
         "design_draws": [float(res.objective_initial), float(res.objective)],
         "fresh_draws": [vals["initial"], vals["optimized"]],
+        "scenario_formation_fresh_draws": vals.get("scenario"),
         "penalty": float(res.penalty),
     }
     report["constraint_margins"] = margins
@@ -207,7 +215,7 @@ def _cmd_design(args) -> int:
                       indent=2)
         print(f"wrote {args.formation_json}")
     if args.plot:
-        plot_formations(res.initial, best, scenario, args.plot, seed=args.seed)
+        plot_formations(baseline, best, scenario, args.plot, seed=args.seed)
         print(f"wrote {args.plot}")
     if args.verify_trials:
         n = args.verify_trials
@@ -217,7 +225,6 @@ def _cmd_design(args) -> int:
             "optimized one"
             + (" (fixed moves, the same trial pipeline)" if fixed else " (run_study)")
         )
-        baseline = Formation.from_scenario(scenario)
         before = evaluate_formation(baseline, scenario, n, seed=args.verify_seed)
         after = evaluate_formation(best, scenario, n, seed=args.verify_seed)
         table = rmse_table(before, after)
@@ -285,7 +292,8 @@ def plot_formations(before, after, scenario, path: str, *, seed: int = 0, draws:
     import matplotlib.pyplot as plt
 
     fig = plt.figure(figsize=(12, 5.5))
-    for col, (title, f) in enumerate((("before", before), ("after", after))):
+    titles = ("before (the scenario's formation)", "after (optimized)")
+    for col, (title, f) in enumerate(zip(titles, (before, after))):
         ax = fig.add_subplot(1, 2, col + 1, projection="3d")
         draw_formation(ax, f, scenario, seed=seed, draws=draws)
         ax.set_title(title)

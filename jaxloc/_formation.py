@@ -48,8 +48,11 @@ SCENARIO_FIELDS = FORMATION_FIELDS[:-1]
 
 
 def _as_float(x: ArrayLike) -> Array:
+    # Strongly typed (never weak), so that a formation and its updates (`eqx.apply_updates`,
+    # `.at[].add`) share one jit signature.
     x = jnp.asarray(x)
-    return x if jnp.issubdtype(x.dtype, jnp.inexact) else x.astype(float)
+    dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.inexact) else jnp.result_type(float)
+    return jnp.array(x, dtype=dtype)
 
 
 class Formation(eqx.Module):

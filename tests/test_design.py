@@ -12,8 +12,6 @@ import numpy as np
 import pytest
 from jaxloc._design import (
     crlb_objective,
-    design_formation,
-    design_penalty,
     mc_objective,
     rmse_ci,
     rmse_table,
@@ -95,3 +93,117 @@ def test_crlb_objective_gradient_matches_finite_differences():
         fd = (_crlb_a(shifted(h)) - _crlb_a(shifted(-h))) / (2 * h)
         an = getattr(g, name)[index]
         assert abs(an - fd) <= 1e-4 * abs(fd) + 1e-9, (name, an, fd)
+
+
+_crlb_grad = eqx.filter_jit(eqx.filter_grad(_crlb_a))
+
+
+def test_a_gradient_step_reduces_the_crlb_objective():
+    spec = formation_filter(FIXED, ("overhead_xy", "moves", "base", "side"))
+    g, _ = eqx.partition(_crlb_grad(FIXED), spec)
+    norm2 = sum(jnp.sum(x * x) for x in jax.tree.leaves(g))
+    step = jax.tree.map(lambda x: -0.01 * x / jnp.sqrt(norm2), g)  # 1 cm / 0.01 rad
+    f1 = eqx.apply_updates(FIXED, step)
+    before, after = float(_crlb_a(FIXED)), float(_crlb_a(f1))
+    assert after < before
+    # First order: the decrease matches the directional derivative.
+    predicted = -0.01 * float(jnp.sqrt(norm2))
+    assert after - before == pytest.approx(predicted, rel=0.2)
+
+
+def test_rmse_confidence_intervals():
+    rng = np.random.default_rng(0)
+    e = np.abs(rng.normal(0.0, 0.1, 4000))
+    rmse, lo, hi = rmse_ci(e, n_boot=400)
+    assert lo < rmse < hi and lo < 0.1 < hi and hi - lo < 0.01
+    n = 4000
+    status = np.zeros((n, 1), np.int32)
+    status[:10] = 3
+    pos_b = np.abs(rng.normal(0.0, 0.1, (n, 1, 4)))
+    before = {"status": status, "position": pos_b, "rotation": pos_b}
+    after = {"status": np.zeros((n, 1), np.int32), "position": 0.5 * pos_b, "rotation": pos_b}
+    table = rmse_table(before, after, n_boot=400)
+    assert table["n_ok"] == [n - 10, n] and table["failures"] == [10, 0]
+    r, lo, hi = table["C"]["ratio"]
+    assert r == pytest.approx(0.5) and lo <= 0.5 <= hi
+
+
+def _parser():
+    from jaxloc._cli_design import register
+
+    parser = argparse.ArgumentParser(prog="jaxloc")
+    register(parser.add_subparsers(dest="command", required=True))
+    return parser
+
+
+@pytest.mark.parametrize(
+    "argv, match",
+    [
+        (["design", "--free", "base,height"], "--free"),
+        (["design", "--moves", "fixed", "--out", "x.yaml"], "cannot be written"),
+        (["design", "--weights", "1,0"], "--weights"),
+        (["design", "--objective", "mc", "--criterion", "D"], "crlb only"),
+        (["design", "--starts", "0"], "--starts"),
+    ],
+)
+def test_cli_rejects_bad_arguments(argv, match):
+    args = _parser().parse_args(argv)
+    with pytest.raises(ValueError, match=match):
+        args.func(args)
+
+
+# --------------------------------------------------------------------------------------
+# Slow: the Monte Carlo objective's gradient and a whole search through the CLI.
+
+
+@pytest.mark.slow
+def test_mc_objective_gradient_matches_finite_differences():
+    keys = jr.split(jr.key(5), 2)
+
+    @eqx.filter_jit
+    def mc(f):
+        value, aux = mc_objective(f, SEQ, keys)
+        return value, aux["ok"]
+
+    value, ok = mc(FIXED)
+    assert bool(jnp.all(ok)) and float(value) > 0
+    g = eqx.filter_jit(eqx.filter_grad(lambda f: mc(f)[0]))(FIXED)
+    h = 1e-4
+    for name, index in (("overhead_xy", (1,)), ("base", ()), ("moves", (0, 0))):
+        def shifted(d):
+            return eqx.tree_at(lambda x: getattr(x, name), FIXED,
+                               getattr(FIXED, name).at[index].add(d))
+
+        fd = (mc(shifted(h))[0] - mc(shifted(-h))[0]) / (2 * h)
+        an = getattr(g, name)[index]
+        assert abs(an - fd) <= 2e-3 * abs(fd) + 1e-7, (name, an, fd)
+
+
+@pytest.mark.slow
+def test_cli_design_round_trips_through_a_scenario_file(tmp_path):
+    from jaxloc._cli import main
+    from jaxloc._formation import CONSTRAINT_SCALES
+
+    out, report_path = tmp_path / "designed.yaml", tmp_path / "report.json"
+    argv = ["design", "--strategy", "sequential", "--free", "base,side,overhead_xy",
+            "--starts", "2", "--draws", "4", "--iterations", "6", "--image-margin", "4",
+            "--out", str(out), "--json", str(report_path), "--plot", str(tmp_path / "f.png")]
+    args = _parser().parse_args(argv)
+    assert args.func(args) == 0
+    report = json.loads(report_path.read_text())
+    loaded = Formation.from_scenario(load_scenario(out))
+    for name, value in report["optimized"].items():
+        if value is not None:
+            np.testing.assert_allclose(getattr(loaded, name), value, rtol=1e-12)
+    # Frozen parameters kept, free ones moved; the objective went down on the design draws.
+    assert report["optimized"]["headings"] == report["initial"]["headings"]
+    assert report["optimized"]["overhead_xy"] != report["initial"]["overhead_xy"]
+    before, after = report["objective"]["design_draws"]
+    assert after < before
+    # Constraints hold at the optimum (up to the penalty's tolerance, a fraction of a scale).
+    for k, v in report["constraint_margins"].items():
+        assert v >= -0.25 * CONSTRAINT_SCALES[k], (k, v)
+    assert os.path.getsize(tmp_path / "f.png") > 0
+    # `jaxloc simulate` accepts the written scenario.
+    assert main(["simulate", "--scenario", str(out), "--trials", "8", "--chunk-size", "8",
+                 "--methods", "robust", "--no-progress"]) == 0
