@@ -601,7 +601,9 @@ def localize_images(
 
     **Returns:** an [`jaxloc.ImageLocalization`][]. Raises `ValueError` if detection fails
     (see [`jaxloc.detect_team_images`][]) or the closed-form estimate fails (its status is
-    named). If the refinement fails (e.g. `inconsistent_fit`), the closed-form estimate is
+    named), or if the refined fit is statistically inconsistent with `team.pixel_sigma`
+    (`inconsistent_fit`: an outlier detection, a wrong camera file or a too small sigma).
+    If the refinement fails otherwise (e.g. iteration limit), the closed-form estimate is
     reported and the reason recorded in `notes`.
     """
     detections = detect_team_images(team, images)
@@ -621,6 +623,19 @@ def localize_images(
         rcode = int(status_code(refined.result))
         if rcode == 0:
             estimate, method = refined, "refined"
+        elif rcode == int(status_code(RESULTS.inconsistent_fit)):
+            # The measurements do not fit one geometry at the stated noise: a wrong blob
+            # taken for a marker, a wrong camera file, or `pixel_sigma` too small. The
+            # closed-form estimate rests on the same measurements: report no pose.
+            st = refined.stats
+            raise ValueError(
+                f"The images of `{team.source}` are inconsistent: the refined fit has "
+                f"chi-square {float(st['chi2']):.1f} for {int(st['dof'])} degrees of freedom "
+                f"(RMS pixel residual {float(st['rms_pixel_error']):.3f} px against "
+                f"`pixel_sigma` = {team.pixel_sigma} px). Check the detections (a wrong blob "
+                "taken for a marker), the camera files and `pixel_sigma`; `--no-refine` "
+                "gives the closed-form estimate without this check."
+            )
         else:
             notes.append(
                 f"Refinement did not succeed ({status_names()[rcode]}); the closed-form "

@@ -149,6 +149,31 @@ def test_missing_marker_is_a_clear_error(cycle, tmp_path):
         localize_images(load_team(d / "team.yaml"), refine=False)
 
 
+def test_missing_overhead_markers(cycle, tmp_path):
+    d = _copy_cycle(cycle, tmp_path)
+    gt = cycle["rendered"]["truth"]["images"]
+
+    def hide(k, name):
+        img = cv2.imread(str(d / f"step{k}_C.png"))
+        u, v = next(m["centroid_px"] for m in gt[f"step{k}_C"]["markers"] if m["name"] == name)
+        cv2.circle(img, (int(round(u)), int(round(v))), 30, (110, 110, 110), -1)
+        cv2.imwrite(str(d / f"step{k}_C.png"), img)
+
+    # One overhead sighting missing: the other placements still fix C's pose.
+    hide(0, "C2")
+    res = localize_images(load_team(d / "team.yaml"), refine=False)
+    assert not bool(res.observations.overhead_visible[0, 1])
+    pos, _ = _errors(res.estimate, cycle["truth"])
+    assert pos[0] < 0.1
+    # Too few distinct placements seen by C: refused, with the count.
+    for k in range(4):
+        for name in ("C1", "C2", "C3"):
+            if (k, name) not in ((0, "C1"), (1, "C1"), (2, "C3")):
+                hide(k, name)
+    with pytest.raises(ValueError, match="only 2 distinct robot placements"):
+        localize_images(load_team(d / "team.yaml"), refine=False)
+
+
 def test_malformed_images_are_clear_errors(cycle, tmp_path):
     d = _copy_cycle(cycle, tmp_path)
     (d / "step2_C.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
