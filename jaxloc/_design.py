@@ -250,14 +250,20 @@ def mc_objective(
 
 
 def design_penalty(
-    formation: Formation, scenario: Scenario, placements: Placement, limits: Limits = Limits()
+    formation: Formation,
+    scenario: Scenario,
+    placements: Placement,
+    limits: Limits = Limits(),
+    strict_steps: bool = True,
 ) -> Scalar:
     """Mean over draws of [`jaxloc.constraint_penalty`][] of each drawn placement
-    (batched `Placement`, leading axis = draws). Fixed moves: every step gets the full
-    margins; random moves: the initial formation does, later (resampled) steps need only
-    be in view."""
+    (batched `Placement`, leading axis = draws). With `strict_steps` every step of the
+    cycle gets the full margins; otherwise only the initial formation does and later
+    steps need only be in view (for random moves: the simulator's resampling keeps them
+    there when it can; full margins on the drawn moves make a design robust to draws it
+    has not seen)."""
     scn = formation.apply(scenario)
-    strict = formation.fixed_moves
+    strict = strict_steps
 
     def one(pl):
         values = constraint_values(formation, scn, pl, limits, strict_steps=strict)
@@ -354,6 +360,7 @@ def _search(
     criterion: str,
     weights: tuple,
     limits: Limits,
+    strict_steps: bool,
     penalty_weight: float,
     iterations: int,
     rtol: float,
@@ -373,7 +380,7 @@ def _search(
     def penalized(z, base):
         f = eqx.combine(unscale(z, base), frozen)
         value, aux = fn(f, scenario, keys)
-        pen = design_penalty(f, scenario, aux["placements"], limits)
+        pen = design_penalty(f, scenario, aux["placements"], limits, strict_steps)
         return norm(value) + penalty_weight * pen, (value, pen)
 
     solver = optx.BFGS(rtol=rtol, atol=atol)
@@ -441,6 +448,7 @@ def design_formation(
     num_draws: int = 32,
     iterations: int = 60,
     limits: Limits = Limits(),
+    strict_steps: bool = True,
     penalty_weight: float = 10.0,
     feasibility_tol: float = 0.05,
     rtol: float = 1e-5,
@@ -471,6 +479,8 @@ def design_formation(
     - `weights`: per-camera weights (C, C1, C2, C3).
     - `num_starts`, `num_draws`, `iterations`: sizes (static).
     - `limits`, `penalty_weight`, `feasibility_tol`: constraints (see [`Limits`][]).
+    - `strict_steps`: apply the margins to every step of every drawn cycle (default), or
+      (random moves only) to the initial formation only; see [`design_penalty`][].
     - `rtol`, `atol`: BFGS tolerances (normalized units).
 
     **Returns:** a [`DesignResult`][].
@@ -489,7 +499,7 @@ def design_formation(
     starts = random_starts(formation, spec, num_starts, key=k_starts)
     value0, (forms, total, value, pen, hist, n) = _search(
         formation, starts, scenario, keys, spec, objective=objective, criterion=criterion,
-        weights=tuple(float(w) for w in weights), limits=limits,
+        weights=tuple(float(w) for w in weights), limits=limits, strict_steps=bool(strict_steps),
         penalty_weight=float(penalty_weight), iterations=int(iterations), rtol=rtol, atol=atol,
     )
     ok = np.asarray(pen <= feasibility_tol) & np.isfinite(np.asarray(total))
