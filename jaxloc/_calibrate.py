@@ -357,6 +357,57 @@ def _omni_jacobian(params, args):
     return J, _omni_residuals(params, args)
 
 
+def omni_initial_guess(
+    corners: list[np.ndarray],
+    obj: np.ndarray,
+    image_size: tuple[int, int],
+    principal_point: tuple[float, float] | None = None,
+) -> tuple[float, float, float, list[np.ndarray]]:
+    r"""Closed-form start of the omnidirectional calibration (no iteration).
+
+    With `xi = 1` and the principal point at the image centre (or `principal_point`), the
+    generalized focal length `gamma` follows linearly from each imaged board row and
+    column (a straight 3-D line; Mei & Rives 2007); the median over all lines is used.
+    Each board's pose then comes from a homography between the board and the lifted
+    bearings (DLT on `b x (H [X, Y, 1]) = 0`, rotation projected onto SO(3)).
+
+    **Returns:** `(cx, cy, gamma, T_cam_board)`, the poses as wxyz_xyz arrays `(7,)`.
+    """
+    views = [np.asarray(c, np.float64).reshape(-1, 2) for c in corners]
+    obj = np.asarray(obj, np.float64)
+    w, h = image_size
+    cx0, cy0 = principal_point if principal_point is not None else (0.5 * (w - 1), 0.5 * (h - 1))
+    # Lines: rows and columns of the board (the object points' distinct y and x values).
+    lines = []
+    for axis in (0, 1):
+        keys = np.round(obj[:, 1 - axis] / max(np.ptp(obj[:, 1 - axis]), 1e-12), 6)
+        for key_ in np.unique(keys):
+            lines.append(np.flatnonzero(keys == key_))
+    gammas = []
+    for c in views:
+        uv = c - np.array([cx0, cy0])
+        for idx in lines:
+            sel = idx[np.all(np.isfinite(uv[idx]), -1)]
+            if len(sel) >= 4:
+                g = _line_gamma(uv[sel], 0.5 * w)
+                if g is not None and 0.05 * w < g < 20 * w:
+                    gammas.append(g)
+    if not gammas:
+        raise ValueError(
+            "Could not initialize the omnidirectional focal length: no board row or column "
+            "gave a usable line (are the corners in the right order?)."
+        )
+    gamma = float(np.median(gammas))
+    init_cam = OmniCamera(1.0, gamma, gamma, cx0, cy0, elevation_min=-1.5, elevation_max=1.5,
+                          image_size=(w, h))  # fmt: skip
+    T0 = []
+    for c in views:
+        ok = np.all(np.isfinite(c), -1)
+        b = np.asarray(_unproject(init_cam, jnp.asarray(np.where(ok[:, None], c, 0.0))))
+        T0.append(_homography_pose(b[ok], obj[ok]))
+    return float(cx0), float(cy0), gamma, T0
+
+
 def calibrate_omni_corners(
     corners: list[np.ndarray],
     obj: np.ndarray,
@@ -405,35 +456,7 @@ def calibrate_omni_corners(
                 f"`corners[{k}]` must have {obj.shape[0]} rows like `obj`; got {c.shape[0]}."
             )
     w, h = image_size
-    cx0, cy0 = principal_point if principal_point is not None else (0.5 * (w - 1), 0.5 * (h - 1))
-    # Lines: rows and columns of the board (the object points' distinct y and x values).
-    lines = []
-    for axis in (0, 1):
-        keys = np.round(obj[:, 1 - axis] / max(np.ptp(obj[:, 1 - axis]), 1e-12), 6)
-        for key_ in np.unique(keys):
-            lines.append(np.flatnonzero(keys == key_))
-    gammas = []
-    for c in views:
-        uv = c - np.array([cx0, cy0])
-        for idx in lines:
-            sel = idx[np.all(np.isfinite(uv[idx]), -1)]
-            if len(sel) >= 4:
-                g = _line_gamma(uv[sel], 0.5 * w)
-                if g is not None and 0.05 * w < g < 20 * w:
-                    gammas.append(g)
-    if not gammas:
-        raise ValueError(
-            "Could not initialize the omnidirectional focal length: no board row or column "
-            "gave a usable line (are the corners in the right order?)."
-        )
-    gamma = float(np.median(gammas))
-    init_cam = OmniCamera(1.0, gamma, gamma, cx0, cy0, elevation_min=-1.5, elevation_max=1.5,
-                          image_size=(w, h))  # fmt: skip
-    T0 = []
-    for c in views:
-        ok = np.all(np.isfinite(c), -1)
-        b = np.asarray(_unproject(init_cam, jnp.asarray(np.where(ok[:, None], c, 0.0))))
-        T0.append(_homography_pose(b[ok], obj[ok]))
+    cx0, cy0, gamma, T0 = omni_initial_guess(views, obj, (w, h), principal_point)
     # From xi = 1 to xi_init: keep the image radius of the board's mean direction, so the
     # start stays close (f scales with (z_s + xi)).
     if xi_init != 1.0:

@@ -21,6 +21,7 @@ from jaxloc._calibrate import (
     find_corners,
     load_camera,
     object_points,
+    omni_initial_guess,
     parse_board,
     save_camera,
 )
@@ -105,18 +106,37 @@ def _board_pose(az, el, dist, yaw, pitch):
     )
 
 
-def _omni_boards(n):
+def _omni_boards(n, camera=OMNI_TRUE, with_poses=False):
     rng = np.random.default_rng(0)
     out = []
     for k in range(n):
         az, el, d = rng.uniform(0, 2 * math.pi), rng.uniform(-0.05, 0.35), rng.uniform(0.35, 0.5)
         T = _board_pose(az, el, d, rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5))
-        img, corners, _ = render_chessboard(OMNI_TRUE, T, BOARD, SQUARE, key=jr.key(k),
+        img, corners, _ = render_chessboard(camera, T, BOARD, SQUARE, key=jr.key(k),
                                             supersample=2)  # fmt: skip
-        out.append((img, corners))
+        out.append((img, corners, T) if with_poses else (img, corners))
     return out
 
 
+def test_omni_closed_form_initialization():
+    # xi = 1 (the initialization's model), no distortion: the focal length from the
+    # boards' straight lines and the homography poses are close to the truth.
+    cam = jaxloc.OmniCamera(1.0, 185.0, 185.0, 319.5, 239.5)
+    boards = _omni_boards(4, cam, with_poses=True)
+    corners = []
+    for img, truth, _ in boards:
+        c = find_corners(img, BOARD, window=5)
+        corners.append(truth if c is None else c)
+    cx, cy, gamma, T0 = omni_initial_guess(corners, object_points(BOARD, SQUARE), (640, 480))
+    assert (cx, cy) == (319.5, 239.5)
+    assert abs(gamma - 185.0) / 185.0 < 0.005, gamma
+    for Tv, (_, _, T) in zip(T0, boards):
+        est = jaxlie.SE3(jnp.asarray(Tv))
+        assert np.linalg.norm(np.asarray(est.translation() - T.translation())) < 0.003
+        assert float(jaxloc.rotation_error(est.rotation(), T.rotation())) < np.radians(0.5)
+
+
+@pytest.mark.slow  # ~15 s on an idle machine, mostly compiling the LM solve
 def test_omni_calibration_recovers_true_parameters(tmp_path, capsys):
     boards = _omni_boards(10)
     # The rendered corners, detected by OpenCV, are within a few tenths of a pixel.
