@@ -21,7 +21,8 @@ steps:                            # the images of each step of the cycle
   - {C: step0_C.png, C1: step0_C1.png, C2: step0_C2.png, C3: step0_C3.png}
   - ...
 detection: {min_area: 6, max_area: 5000, max_elongation: 3.0, min_fill: 0.6,
-            annulus_margin_px: 3, on_ambiguous: error, sphere_correction: true}
+            min_solidity: 0.85, annulus_margin_px: 3, on_ambiguous: error,
+            sphere_correction: true}
 ```
 
 With `sphere_correction` (default), markers are taken to be spheres and each blob's
@@ -86,6 +87,7 @@ ROBOTS = ("C", "C1", "C2", "C3")
 GROUND = ("C1", "C2", "C3")
 _DETECTION_KEYS = {
     "min_area": float, "max_area": float, "max_elongation": float, "min_fill": float,
+    "min_solidity": float,
     "annulus_margin_px": float, "on_ambiguous": str, "sphere_correction": bool,
 }  # fmt: skip
 
@@ -369,8 +371,8 @@ def detect_team_images(
     an ambiguous colour (unless `detection.on_ambiguous` is `largest`).
     """
     steps = num_steps(team.strategy)
-    opts = {k: team.detection[k] for k in ("min_area", "max_area", "max_elongation", "min_fill")
-            if k in team.detection}  # fmt: skip
+    keys = ("min_area", "max_area", "max_elongation", "min_fill", "min_solidity")
+    opts = {k: team.detection[k] for k in keys if k in team.detection}
     out = {}
     masks: dict[str, np.ndarray | None] = {}
     for k in range(steps):

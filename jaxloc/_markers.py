@@ -10,7 +10,8 @@ BGR image, the marker of every requested robot:
 2. **Fine stage** (full resolution, in each window): HSV thresholding, morphological
    opening (removes isolated noise pixels), connected components, rejection by area
    (`min_area`, `max_area`) and shape (elongation from the second moments,
-   `max_elongation`, and fill ratio of the moment ellipse, `min_fill`), and, for
+   `max_elongation`, fill ratio of the moment ellipse, `min_fill`, and solidity, the
+   area over the convex hull's, `min_solidity`, which rejects crossing stripes), and, for
    omnidirectional images, by an annulus mask (the mirror's elevation band).
 3. **Sub-pixel centroid**: intensity-weighted first moments over the blob dilated by
    two pixels, the weight being the pixel's chroma `max(B,G,R) - min(B,G,R)` minus the
@@ -229,6 +230,7 @@ def detect_markers(
     max_area: float = 5000.0,
     max_elongation: float = 3.0,
     min_fill: float = 0.6,
+    min_solidity: float = 0.85,
     coarse: int = 2,
 ) -> dict[str, MarkerDetection]:
     r"""Find each robot's colour marker in a BGR image.
@@ -242,6 +244,8 @@ def detect_markers(
       following.
     - `min_area`, `max_area`: accepted blob area (px^2, after opening).
     - `max_elongation`: largest major/minor axis ratio of the blob's second moments.
+    - `min_solidity`: smallest ratio of the blob's area to that of its convex hull
+      (rejects crosses and touching clutter).
     - `min_fill`: smallest ratio of the blob's area to that of its moment ellipse
       (rejects rings, crosses, ragged clutter).
     - `coarse`: downsampling factor of the proposal stage (1 = search at full
@@ -290,7 +294,7 @@ def detect_markers(
         cands = []
         for x0, y0, x1, y1 in _merge_boxes(boxes):
             cands.extend(_fine(image, mask, color, x0, y0, x1, y1, min_area, max_area,
-                               max_elongation, min_fill))  # fmt: skip
+                               max_elongation, min_fill, min_solidity))  # fmt: skip
         if not cands:
             out[name] = MarkerDetection(np.full(2, np.nan), False, math.nan, 0.0, 0)
             continue
@@ -317,7 +321,8 @@ def _merge_boxes(boxes):
     return boxes
 
 
-def _fine(image, mask, color, x0, y0, x1, y1, min_area, max_area, max_elongation, min_fill):
+def _fine(image, mask, color, x0, y0, x1, y1, min_area, max_area, max_elongation, min_fill,
+          min_solidity):  # fmt: skip
     """Full-resolution blobs in one window: list of `(pixel, spread, area)`."""
     # Widen the window so that the dilated blob and a background ring fit inside.
     h, w = image.shape[:2]
@@ -343,6 +348,13 @@ def _fine(image, mask, color, x0, y0, x1, y1, min_area, max_area, max_elongation
         blob = (labels == lab).astype(np.uint8)
         elong, fill = _moments_shape(blob)
         if elong > max_elongation or fill < min_fill:
+            continue
+        contours, _ = cv2.findContours(blob, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        hull_area = max(cv2.contourArea(cv2.convexHull(max(contours, key=len))), 1e-9)
+        # Contour areas pass through pixel centres: compare with the polygon area of the
+        # blob's own contour (not its pixel count), so small discs are not penalized.
+        solidity = cv2.contourArea(max(contours, key=len)) / hull_area
+        if solidity < min_solidity:
             continue
         # Support of the weighted centroid: the blob dilated by 2 px (its blurred,
         # anti-aliased rim), minus other blobs; background chroma: mean over the ring
