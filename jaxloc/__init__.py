@@ -22,6 +22,11 @@ from ._crlb import (
     cycle_crlb as cycle_crlb,
     CycleCovariance as CycleCovariance,
 )
+from ._cycle_model import (
+    num_placements as num_placements,
+    pixel_sigma_per_axis as pixel_sigma_per_axis,
+    placement_ids as placement_ids,
+)
 from ._montecarlo import run_chunk as run_chunk, run_study as run_study, trial_key as trial_key
 from ._mutual import mutual_localization as mutual_localization, MutualSolution as MutualSolution
 from ._observations import (
@@ -54,9 +59,6 @@ from ._presets import (
     R_BODY_PTZ as R_BODY_PTZ,
 )
 from ._refine import (
-    num_placements as num_placements,
-    pixel_sigma_per_axis as pixel_sigma_per_axis,
-    placement_ids as placement_ids,
     refine_cycle as refine_cycle,
     refine_overhead_pose as refine_overhead_pose,
 )

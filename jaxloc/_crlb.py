@@ -26,10 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._observations import CycleObservations, CyclePoses
-from ._refine import (
-    _cholesky,
-    _estimate_placements,
+from ._cycle_model import (
     _first_occurrence,
     _odometry_weight,
     _predict,
@@ -42,6 +39,8 @@ from ._refine import (
     pixel_sigma_per_axis,
     placement_ids,
 )
+from ._observations import CycleObservations, CyclePoses
+from ._refine import _cholesky, _estimate_placements
 from ._scenario import Scenario
 from ._strategies import CycleEstimate
 

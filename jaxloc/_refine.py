@@ -22,22 +22,33 @@ import jax.flatten_util
 import jax.numpy as jnp
 import jaxlie
 import lineax as lx
-import numpy as np
 import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from ._camera import AbstractCamera
-from ._misc import safe_norm, safe_sqrt
-from ._observations import CycleObservations, CyclePoses, move_start_step, moving_robot
+from ._cycle_model import (
+    _first_occurrence,
+    _predict,
+    _unpack,
+    cycle_data,
+    placement_ids,
+    whitened,
+    whitened_with_jacobian,
+)
+from ._misc import safe_sqrt
+from ._observations import CycleObservations, CyclePoses
 from ._overhead import _cholesky_solve6
-from ._presets import R_BODY_OMNI, R_BODY_PTZ
 from ._results import raise_if_failed, RESULTS
 from ._scenario import Scenario
 from ._solvers.dlt import identity_like, PoseSolution, where_pose
-from ._strategies import CycleEstimate, overhead_point_ids
+from ._strategies import CycleEstimate
 
 
 SOLVERS = ("lm", "gn")
+#: Solvers of [`jaxloc.refine_cycle`][]: jaxloc's batched Levenberg--Marquardt, or
+#: optimistix's Levenberg--Marquardt / Gauss--Newton on the same residuals.
+CYCLE_SOLVERS = ("lm", "optx-lm", "optx-gn")
 LOSSES = (None, "huber", "cauchy")
 #: Default `loss_scale` of each robust loss, in units of `sigma` (95% asymptotic
 #: efficiency under Gaussian noise).
@@ -335,187 +346,159 @@ def refine_overhead_pose(
 # Joint refinement of a whole cycle.
 
 
-def placement_ids(strategy: str) -> np.ndarray:
-    """Index of the distinct placement (pose) each robot occupies at each step.
-
-    Shape `(steps, 3)`: a robot that does not move keeps its placement (and its pose)
-    across steps. Sequential: 6 placements, concurrent: 7. Placement 0 is C1 at the start
-    of the cycle, the world frame.
-    """
-    return overhead_point_ids(strategy)
-
-
-def _first_occurrence(strategy: str) -> tuple[np.ndarray, np.ndarray]:
-    """`(step, robot)` of the first sighting of each placement, two arrays `(placements,)`."""
-    ids = placement_ids(strategy)
-    n = int(ids.max()) + 1
-    ks, rs = np.zeros(n, np.int32), np.zeros(n, np.int32)
-    for p in range(n):
-        k, r = np.argwhere(ids == p)[0]
-        ks[p], rs[p] = k, r
-    return ks, rs
-
-
-def num_placements(strategy: str) -> int:
-    """Number of distinct robot placements of a cycle (6 sequential, 7 concurrent)."""
-    return int(placement_ids(strategy).max()) + 1
-
-
-def pixel_sigma_per_axis(scenario: Scenario) -> Scalar:
-    """Standard deviation (px) of each pixel coordinate under the scenario's noise model:
-    `pixel_sigma / sqrt(2)` for `"paper"` (radius ~ N(0, sigma), uniform direction, so
-    `E|n|^2 = sigma^2`), `pixel_sigma` for `"gaussian"`."""
-    if scenario.noise_model == "paper":
-        return scenario.pixel_sigma / np.sqrt(2.0)
-    return scenario.pixel_sigma
-
-
-_SIGMA_FLOOR_PX = 1e-6
-
-
-def _rotations(T: Float[Array, "... 7"]) -> Float[Array, "... 3 3"]:
-    flat = T.reshape(-1, 7)
-    R = jax.vmap(lambda w: jaxlie.SE3(w).rotation().as_matrix())(flat)
-    return R.reshape(T.shape[:-1] + (3, 3))
-
-
-def _predict(T_place, T_over, scenario: Scenario, strategy: str):
-    """Noise-free measurements of a cycle from its placements' and the overhead camera's
-    poses (`wxyz_xyz` arrays `(placements, 7)` and `(7,)`, world frame `W`).
-
-    Returns `(mutual (steps, 3, 3, 2) px, overhead (steps, 3, 2) px, lengths (moves,) m)`;
-    the diagonal of `mutual` is a dummy (finite) value.
-    """
-    dtype = T_place.dtype
-    ids = placement_ids(strategy)
-    T_body = T_place[ids]  # (steps, 3, 7)
-    p = T_body[..., 4:]
-    R = _rotations(T_body)
-    diff = p[:, None, :, :] - p[:, :, None, :]  # [k, i, j] = p_j - p_i
-    rel = jnp.einsum("kiab,kija->kijb", R, diff)  # robot j in robot i's body frame
-    eye = np.broadcast_to(np.eye(3, dtype=bool)[None, :, :, None], rel.shape)
-    rel = jnp.where(eye, jnp.array([1.0, 0.0, 0.0], dtype), rel)
-    M_ptz = jnp.asarray(R_BODY_PTZ, dtype)
-    M_omni = jnp.asarray(R_BODY_OMNI, dtype)
-    # Camera frames through the mounts: p_cam = M^T p_body (as in the simulator).
-    uv_ptz = scenario.ptz.project(jnp.einsum("ab,...a->...b", M_ptz, rel[:, 0]))
-    uv_2 = scenario.omni2.project(jnp.einsum("ab,...a->...b", M_omni, rel[:, 1]))
-    uv_3 = scenario.omni3.project(jnp.einsum("ab,...a->...b", M_omni, rel[:, 2]))
-    mutual = jnp.stack([uv_ptz, uv_2, uv_3], axis=1)
-    R_o = _rotations(T_over)
-    p_cam = jnp.einsum("ab,kja->kjb", R_o, p - T_over[None, None, 4:])
-    overhead = scenario.overhead.project(p_cam)
-    starts, movers = move_start_step(strategy), moving_robot(strategy)
-    lengths = safe_norm(p[starts + 1, movers] - p[starts, movers])
-    return mutual, overhead, lengths
-
-
-def _visible_masks(T_place, T_over, scenario: Scenario, strategy: str):
-    """Which sightings a camera makes at the given poses (`in_view`), like the simulator:
-    `(mutual (steps, 3, 3), overhead (steps, 3))`, diagonal False."""
-    ids = placement_ids(strategy)
-    T_body = T_place[ids]
-    p = T_body[..., 4:]
-    R = _rotations(T_body)
-    diff = p[:, None, :, :] - p[:, :, None, :]
-    rel = jnp.einsum("kiab,kija->kijb", R, diff)
-    eye = np.broadcast_to(np.eye(3, dtype=bool)[None, :, :, None], rel.shape)
-    rel = jnp.where(eye, jnp.array([1.0, 0.0, 0.0], rel.dtype), rel)
-    M_ptz = jnp.asarray(R_BODY_PTZ, rel.dtype)
-    M_omni = jnp.asarray(R_BODY_OMNI, rel.dtype)
-    vis = jnp.stack(
-        [
-            scenario.ptz.in_view(jnp.einsum("ab,...a->...b", M_ptz, rel[:, 0])),
-            scenario.omni2.in_view(jnp.einsum("ab,...a->...b", M_omni, rel[:, 1])),
-            scenario.omni3.in_view(jnp.einsum("ab,...a->...b", M_omni, rel[:, 2])),
-        ],
-        axis=1,
-    )
-    vis = vis & ~np.eye(3, dtype=bool)[None]
-    p_cam = jnp.einsum("ab,kja->kjb", _rotations(T_over), p - T_over[None, None, 4:])
-    return vis, scenario.overhead.in_view(p_cam)
-
-
-class CycleData(eqx.Module):
-    """Measurements of a cycle with their whitening weights (1 / sigma; 0 = unused).
-
-    **Fields:** `mutual_pixels` `(steps, 3, 3, 2)` px, `mutual_weight` `(steps, 3, 3)`
-    1/px, `overhead_pixels` `(steps, 3, 2)` px, `overhead_weight` `(steps, 3)` 1/px,
-    `odometry` `(moves,)` m, `odometry_weight` `(moves,)` 1/m. Unused entries hold 0.
-    """
-
-    mutual_pixels: Float[Array, "steps 3 3 2"]
-    mutual_weight: Float[Array, "steps 3 3"]
-    overhead_pixels: Float[Array, "steps 3 2"]
-    overhead_weight: Float[Array, "steps 3"]
-    odometry: Float[Array, " moves"]
-    odometry_weight: Float[Array, " moves"]
-
-
-def _odometry_weight(d, sigma):
-    # Zero sigmas (noiseless odometry) fall back to a tiny floor, as in the strategies.
-    floor = 1e-9 + 1e-6 * jnp.max(jnp.abs(d))
-    return 1.0 / jnp.maximum(sigma, floor)
-
-
-def cycle_data(observations: CycleObservations, scenario: Scenario) -> CycleData:
-    """Whitened measurement set of a cycle: NaN pixels (not measured) and the diagonal are
-    masked out; pixel sigma per axis from [`jaxloc.pixel_sigma_per_axis`][]; odometry
-    sigma from `observations.odometry_sigma`."""
-    dtype = observations.mutual_pixels.dtype
-    s_px = jnp.maximum(pixel_sigma_per_axis(scenario).astype(dtype), _SIGMA_FLOOR_PX)
-    mp = observations.mutual_pixels
-    m_ok = jnp.all(jnp.isfinite(mp), axis=-1) & ~np.eye(3, dtype=bool)[None]
-    op = observations.overhead_pixels
-    o_ok = jnp.all(jnp.isfinite(op), axis=-1) & observations.overhead_visible
-    d = observations.odometry
-    d_ok = jnp.isfinite(d) & jnp.isfinite(observations.odometry_sigma)
-    d = jnp.where(d_ok, d, 0.0)
-    return CycleData(
-        mutual_pixels=jnp.where(m_ok[..., None], mp, 0.0),
-        mutual_weight=jnp.where(m_ok, 1.0 / s_px, 0.0),
-        overhead_pixels=jnp.where(o_ok[..., None], op, 0.0),
-        overhead_weight=jnp.where(o_ok, 1.0 / s_px, 0.0),
-        odometry=d,
-        odometry_weight=jnp.where(
-            d_ok, _odometry_weight(d, jnp.where(d_ok, observations.odometry_sigma, 0.0)), 0.0
-        ),
-    )
-
-
-def _unpack(theta, T0_place, T0_over):
-    """Poses from the tangent vector: placement 0 (C1 at the start) is the identity."""
-    n = T0_place.shape[0]
-    d = theta[:-6].reshape(n - 1, 6)
-    moved = jax.vmap(lambda t, dd: jaxlie.manifold.rplus(jaxlie.SE3(t), dd).wxyz_xyz)(
-        T0_place[1:], d
-    )
-    first = jnp.zeros((1, 7), T0_place.dtype).at[0, 0].set(1.0)
-    T_place = jnp.concatenate([first, moved.astype(T0_place.dtype)])
-    T_over = jaxlie.manifold.rplus(jaxlie.SE3(T0_over), theta[-6:]).wxyz_xyz
-    return T_place, T_over.astype(T0_over.dtype)
-
-
-def _whitened(T_place, T_over, data: CycleData, scenario: Scenario, strategy: str):
-    mutual, overhead, lengths = _predict(T_place, T_over, scenario, strategy)
-    r_m = data.mutual_weight[..., None] * (mutual - data.mutual_pixels)
-    r_o = data.overhead_weight[..., None] * (overhead - data.overhead_pixels)
-    r_d = data.odometry_weight * (lengths - data.odometry)
-    return jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
-
-
-def _cycle_residuals(theta, args):
-    T0_place, T0_over, data, scenario, strategy = args
+@ft.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _cycle_residuals(strategy, theta, T0_place, T0_over, data, scenario):
+    """Whitened residuals at `T0 exp(theta)` (placement 0 held at the identity)."""
     T_place, T_over = _unpack(theta, T0_place, T0_over)
-    return _whitened(T_place, T_over, data, scenario, strategy)
+    return whitened(T_place, T_over, data, scenario, strategy)
 
 
-def cycle_jacobian(T_place, T_over, data: CycleData, scenario: Scenario, strategy: str):
-    """Jacobian of the whitened residuals w.r.t. the cycle's tangent parameters at the
-    given poses: shape `(residuals, 6 (placements - 1) + 6)`."""
-    n = T_place.shape[0]
-    zero = jnp.zeros(6 * n, T_place.dtype)
-    return jax.jacfwd(_cycle_residuals)(zero, (T_place, T_over, data, scenario, strategy))
+def _right_jacobians(theta, T0_place, T0_over, T_place, T_over):
+    """`d log(T^-1 T0 exp(theta')) / d theta'` at `theta' = theta` for every unknown pose,
+    `(placements, 6, 6)`: maps the tangent step to the local perturbation of `T`."""
+    T0 = jnp.concatenate([T0_place[1:], T0_over[None]])
+    T = jnp.concatenate([T_place[1:], T_over[None]])
+
+    def one(t0, t, th):
+        def local(th2):
+            moved = jaxlie.manifold.rplus(jaxlie.SE3(t0), th2)
+            return jaxlie.manifold.rminus(jaxlie.SE3(t), moved)  # log(T^-1 moved)
+
+        return jax.jacfwd(local)(th)
+
+    return jax.vmap(one)(T0, T, theta.reshape(-1, 6)).astype(theta.dtype)
+
+
+@ft.partial(_cycle_residuals.defjvp, symbolic_zeros=True)
+def _cycle_residuals_jvp(strategy, primals, tangents):
+    # The Jacobian by the chain rule (jaxloc._cycle_model), ~20x cheaper than forward mode
+    # through the whole model; tangents of the other inputs (the implicit adjoint's
+    # derivatives w.r.t. observations or the start) by ordinary forward mode.
+    theta, *rest = primals
+    theta_dot, *rest_dot = tangents
+    T0_place, T0_over, data, scenario = rest
+    T_place, T_over = _unpack(theta, T0_place, T0_over)
+    r, J_local = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
+    Jr = _right_jacobians(theta, T0_place, T0_over, T_place, T_over)
+    J = jnp.einsum("mbi,bij->mbj", J_local[:, 1:], Jr).reshape(r.shape[0], -1)
+    r_dot = J @ theta_dot
+    leaves, tree = jax.tree.flatten(rest)
+    dots = tree.flatten_up_to(rest_dot)
+    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
+    if live:
+
+        def of_live(*values):
+            full = list(leaves)
+            for i, v in zip(live, values):
+                full[i] = v
+            return _cycle_residuals.fun(strategy, theta, *tree.unflatten(full))
+
+        _, extra = jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])
+        r_dot = r_dot + extra
+    return r, r_dot
+
+
+def _flat_jacobian(J_local: Float[Array, "m p 6"]) -> Float[Array, "m n"]:
+    """Drop placement 0 (the gauge) and flatten to the tangent layout of `_unpack`."""
+    return J_local[:, 1:].reshape(J_local.shape[0], -1)
+
+
+def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, atol):
+    """Levenberg--Marquardt re-linearized at the current poses every step.
+
+    Each iteration costs one model evaluation with its chain-rule Jacobian, one normal
+    matrix and one `fori_loop` Cholesky: no right Jacobians of the exponential map (the
+    step is always taken from the current pose), no LAPACK, no materialization of a
+    linear operator. Isotropic damping `lambda I` (the residuals are whitened and the
+    tangent is in m and rad, so `lambda` is a prior precision; Marquardt's `diag(J^T J)`
+    scaling over-damps every translation that a precise odometry distance touches),
+    starting at 1e-2, divided by 10 after an accepted step, multiplied by 10 after a
+    rejected one. Converged when a step (accepted, or rejected at negligible damping:
+    the minimum within rounding) is below `atol + rtol * max |position|` (m, rad).
+
+    Returns `(T_place, T_over, num_steps, converged)`.
+    """
+    dtype = T0_place.dtype
+
+    def model(T_place, T_over):
+        r, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
+        return r, _flat_jacobian(J)
+
+    r0, J0 = model(T0_place, T0_over)
+    init = (
+        jnp.array(0, jnp.int32), T0_place, T0_over, r0, J0,
+        jnp.array(1e-2, dtype), jnp.array(False), jnp.array(False),
+    )
+
+    def cond(state):
+        k, *_, done, _ = state
+        return (k < max_steps) & ~done
+
+    def body(state):
+        k, T_place, T_over, r, J, lam, _, _ = state
+        H = J.T @ J
+        g = J.T @ r
+        L = _cholesky(H + lam * jnp.eye(H.shape[0], dtype=dtype))
+        delta = -_cholesky_solve(L, g)
+        finite = jnp.all(jnp.isfinite(delta))
+        delta = jnp.where(finite, delta, 0.0)
+        T_place_new, T_over_new = _unpack(delta, T_place, T_over)
+        r_new, J_new = model(T_place_new, T_over_new)
+        cost, cost_new = jnp.sum(r * r), jnp.sum(r_new * r_new)
+        accept = finite & jnp.isfinite(cost_new) & (cost_new <= cost)
+        small = jnp.max(jnp.abs(delta)) <= atol + rtol * jnp.max(jnp.abs(T_place[:, 4:]))
+        # A rejected step that is already negligible: the minimum within rounding.
+        done = (accept | (lam < 1e-3)) & finite & small
+        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
+        lam = jnp.where(accept, jnp.maximum(lam / 10.0, 1e-9), jnp.minimum(lam * 10.0, 1e12))
+        return (
+            k + 1, pick(T_place_new, T_place), pick(T_over_new, T_over), pick(r_new, r),
+            pick(J_new, J), lam, done, done,
+        )
+
+    k, T_place, T_over, *_, converged = jax.lax.while_loop(cond, body, init)
+    return T_place, T_over, k, converged
+
+
+@ft.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _implicit_step(strategy, T_place, T_over, data, scenario):
+    """Zero tangent step at a converged solution `(T_place, T_over)`, whose derivative is
+    that of the minimizer w.r.t. the measurements and the scenario (implicit function
+    theorem on the gradient of the cost). Poses `_unpack(step, T_place, T_over)` are the
+    solution with correct derivatives; the solution does not depend on the start."""
+    return jnp.zeros(6 * (T_place.shape[0]), T_place.dtype)
+
+
+@ft.partial(_implicit_step.defjvp, symbolic_zeros=True)
+def _implicit_step_jvp(strategy, primals, tangents):
+    T_place, T_over, data, scenario = primals
+    _, _, data_dot, scenario_dot = tangents
+    zero = jnp.zeros(6 * T_place.shape[0], T_place.dtype)
+
+    def gradient(theta, data, scenario):
+        def cost(t):
+            r = _cycle_residuals(strategy, t, T_place, T_over, data, scenario)
+            return 0.5 * jnp.sum(r * r)
+
+        return jax.grad(cost)(theta)
+
+    H = jax.jacfwd(gradient)(zero, data, scenario)
+    eye = jnp.eye(zero.shape[0], dtype=zero.dtype)
+    H_inv = jax.vmap(lambda e: _cholesky_solve(_cholesky(H), e))(eye).T
+    leaves, tree = jax.tree.flatten((data, scenario))
+    dots = tree.flatten_up_to((data_dot, scenario_dot))
+    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
+    if not live:
+        return zero, jnp.zeros_like(zero)
+
+    def of_live(*values):
+        full = list(leaves)
+        for i, v in zip(live, values):
+            full[i] = v
+        return gradient(zero, *tree.unflatten(full))
+
+    _, g_dot = jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])
+    return zero, -H_inv @ g_dot
 
 
 def _estimate_placements(estimate: CycleEstimate, strategy: str):
@@ -536,18 +519,32 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
     T0_over = jnp.where(finite0, T0_over, ident)
     T0_place = T0_place.at[0].set(ident)  # the gauge: C1's start pose is the world frame
     n = T0_place.shape[0]
-    args = (T0_place, T0_over, data, scenario, strategy)
-    sol = optx.least_squares(
-        _cycle_residuals,
-        _make_solver(solver, rtol, atol),
-        jnp.zeros(6 * n, dtype),
-        args=args,
-        max_steps=max_steps,
-        throw=False,
-    )
-    T_place, T_over = _unpack(sol.value, T0_place, T0_over)
+    if solver == "lm":
+        # The loop is not differentiated: `_implicit_step` carries the derivatives.
+        T0_place, T0_over, lm_data, lm_scenario = jax.tree.map(
+            jax.lax.stop_gradient, (T0_place, T0_over, data, scenario)
+        )
+        T_place, T_over, num_steps, converged = _batched_lm(
+            T0_place, T0_over, lm_data, lm_scenario, strategy, max_steps, rtol, atol
+        )
+        step = _implicit_step(strategy, T_place, T_over, data, scenario)
+        T_place, T_over = _unpack(step, T_place, T_over)
+        result = RESULTS.where(
+            converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached
+        )
+    else:
+        sol = optx.least_squares(
+            lambda theta, args: _cycle_residuals(strategy, theta, *args),
+            _make_solver(solver.removeprefix("optx-"), rtol, atol),
+            jnp.zeros(6 * n, dtype),
+            args=(T0_place, T0_over, data, scenario),
+            max_steps=max_steps,
+            throw=False,
+        )
+        T_place, T_over = _unpack(sol.value, T0_place, T0_over)
+        num_steps = sol.stats["num_steps"]
+        result = RESULTS.promote(sol.result)
     finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
-    result = RESULTS.promote(sol.result)
     result = RESULTS.where(finite, result, RESULTS.no_valid_solution)
     result = RESULTS.where(
         estimate.result == RESULTS.successful, result, estimate.result
@@ -567,10 +564,10 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
     ) + jnp.sum(jnp.where(o_used, jnp.sum((overhead - data.overhead_pixels) ** 2, -1), 0.0))
     count = jnp.maximum(jnp.sum(m_used) + jnp.sum(o_used), 1).astype(dtype)
     stats = dict(estimate.stats)
-    stats["num_steps"] = sol.stats["num_steps"]
+    stats["num_steps"] = num_steps
     stats["rms_pixel_error"] = safe_sqrt(e2 / count)
     stats["odometry_rms"] = safe_sqrt(jnp.mean((lengths - data.odometry) ** 2))
-    r = _whitened(T_place, T_over, data, scenario, strategy)
+    r = whitened(T_place, T_over, data, scenario, strategy)
     stats["chi2"] = jnp.sum(r * r)
     used = 2 * (jnp.sum(m_used) + jnp.sum(o_used)) + jnp.sum(data.odometry_weight > 0)
     stats["dof"] = (used - 6 * n).astype(jnp.int32)
@@ -629,8 +626,12 @@ def refine_cycle(
     - `scenario`: a [`jaxloc.Scenario`][]: its cameras (`ptz`, `omni2`, `omni3`,
         `overhead`), `pixel_sigma` and `noise_model` are used.
     - `estimate`: the starting point, usually [`jaxloc.localize_cycle`][]`(observations)`.
-    - `solver`: `"lm"` (Levenberg--Marquardt, default) or `"gn"` (Gauss--Newton). Keyword
-        only, as are the following.
+    - `solver`: keyword only, as are the following. `"lm"` (default): jaxloc's batched
+        Levenberg--Marquardt, re-linearized at the current poses with the model's
+        chain-rule Jacobian (the fast path for Monte Carlo); `"optx-lm"` / `"optx-gn"`:
+        `optx.LevenbergMarquardt` / `optx.GaussNewton` on the same residuals. All reach
+        the same minimum; gradients are implicit (w.r.t. the observations and the
+        scenario; the minimizer does not depend on `estimate`).
     - `max_steps`, `rtol`, `atol`: the solver's iteration limit and tolerances.
     - `throw`: raise on failure if `True`; otherwise inspect `result`.
 
@@ -646,8 +647,10 @@ def refine_cycle(
 
     Single cycle; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad`.
     """
-    if solver not in SOLVERS:
-        raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')
+    if solver not in CYCLE_SOLVERS:
+        raise ValueError(
+            f'`solver` must be "lm", "optx-lm" or "optx-gn"; got {solver!r}.'
+        )
     if not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"`max_steps` must be a positive int; got {max_steps!r}.")
     if scenario.strategy != observations.strategy:
