@@ -10,6 +10,22 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from ._calibrate import (
+    calibrate_omni as calibrate_omni,
+    calibrate_omni_corners as calibrate_omni_corners,
+    calibrate_pinhole as calibrate_pinhole,
+    Calibration as Calibration,
+    camera_from_dict as camera_from_dict,
+    camera_from_kalibr as camera_from_kalibr,
+    camera_to_dict as camera_to_dict,
+    camera_to_kalibr as camera_to_kalibr,
+    find_corners as find_corners,
+    load_camera as load_camera,
+    object_points as object_points,
+    omni_initial_guess as omni_initial_guess,
+    parse_board as parse_board,
+    save_camera as save_camera,
+)
 from ._camera import (
     AbstractCamera as AbstractCamera,
     OmniCamera as OmniCamera,
@@ -26,6 +42,26 @@ from ._cycle_model import (
     num_placements as num_placements,
     pixel_sigma_per_axis as pixel_sigma_per_axis,
     placement_ids as placement_ids,
+)
+from ._frontend import (
+    detect_team_images as detect_team_images,
+    ImageLocalization as ImageLocalization,
+    load_team as load_team,
+    localize_images as localize_images,
+    observations_from_detections as observations_from_detections,
+    ptz_equivalent as ptz_equivalent,
+    save_team as save_team,
+    scenario_for as scenario_for,
+    Team as Team,
+    team_from_rendered as team_from_rendered,
+)
+from ._markers import (
+    annulus_mask as annulus_mask,
+    DEFAULT_MARKER_COLORS as DEFAULT_MARKER_COLORS,
+    detect_markers as detect_markers,
+    MarkerColor as MarkerColor,
+    MarkerDetection as MarkerDetection,
+    read_image as read_image,
 )
 from ._montecarlo import run_chunk as run_chunk, run_study as run_study, trial_key as trial_key
 from ._mutual import mutual_localization as mutual_localization, MutualSolution as MutualSolution
@@ -61,6 +97,14 @@ from ._presets import (
 from ._refine import (
     refine_cycle as refine_cycle,
     refine_overhead_pose as refine_overhead_pose,
+)
+from ._render import (
+    annulus_of as annulus_of,
+    DEFAULT_MARKER_BGR as DEFAULT_MARKER_BGR,
+    render_chessboard as render_chessboard,
+    render_cycle as render_cycle,
+    render_markers as render_markers,
+    sphere_center_pixel as sphere_center_pixel,
 )
 from ._results import (
     RESULTS as RESULTS,

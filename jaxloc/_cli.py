@@ -1,4 +1,5 @@
-"""The `jaxloc` command line: `table1`, `simulate`, `cameras`."""
+"""The `jaxloc` command line: `table1`, `simulate`, `cameras`, `calibrate`, `localize`,
+`design`."""
 
 import argparse
 import json
@@ -6,6 +7,8 @@ import sys
 import time
 
 import numpy as np
+
+from . import _cli_design, _cli_images
 
 
 # The paper's Table I (one simulated run): position errors in cm, orientation errors in
@@ -284,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=_cmd_simulate)
     p = sub.add_parser("cameras", help="the paper's preset cameras and a round-trip check")
     p.set_defaults(func=_cmd_cameras)
+    _cli_images.register(sub)
+    _cli_design.register(sub)
 
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) <= 0:
