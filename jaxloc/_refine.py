@@ -403,7 +403,7 @@ def _flat_jacobian(J_local: Float[Array, "m p 6"]) -> Float[Array, "m n"]:
     return J_local[:, 1:].reshape(J_local.shape[0], -1)
 
 
-def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, atol):
+def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, atol, active):
     """Levenberg--Marquardt re-linearized at the current poses every step.
 
     Each iteration costs one model evaluation with its chain-rule Jacobian, one normal
@@ -416,7 +416,9 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
     rejected one. Converged when a step (accepted, or rejected at negligible damping:
     the minimum within rounding) is below `atol + rtol * max |position|` (m, rad).
 
-    Returns `(T_place, T_over, num_steps, converged)`.
+    An inactive problem (`active` False: a failed start) takes no step, so under `vmap`
+    it does not prolong its batch's loop. Returns `(T_place, T_over, num_steps,
+    converged)`.
     """
     dtype = T0_place.dtype
 
@@ -427,7 +429,7 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
     r0, J0 = model(T0_place, T0_over)
     init = (
         jnp.array(0, jnp.int32), T0_place, T0_over, r0, J0,
-        jnp.array(1e-2, dtype), jnp.array(False), jnp.array(False),
+        jnp.array(1e-2, dtype), ~active, jnp.array(False),
     )
 
     def cond(state):
@@ -525,7 +527,8 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
             jax.lax.stop_gradient, (T0_place, T0_over, data, scenario)
         )
         T_place, T_over, num_steps, converged = _batched_lm(
-            T0_place, T0_over, lm_data, lm_scenario, strategy, max_steps, rtol, atol
+            T0_place, T0_over, lm_data, lm_scenario, strategy, max_steps, rtol, atol,
+            finite0 & (estimate.result == RESULTS.successful),
         )
         step = _implicit_step(strategy, T_place, T_over, data, scenario)
         T_place, T_over = _unpack(step, T_place, T_over)

@@ -38,6 +38,7 @@ from ._observations import (
 )
 from ._overhead import solve_overhead_pose
 from ._results import raise_if_failed, RESULTS
+from ._solvers.p3p import p3p
 
 
 class CycleEstimate(eqx.Module):
@@ -195,10 +196,46 @@ def _solve3(A: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
     return jnp.where(jnp.abs(det) > 1e-300, adj @ b / safe, 0.0)
 
 
+def _overhead_misfit(obs: CycleObservations, P: Float[Array, "3 3 3"], rho):
+    """Overhead-camera misfit of each candidate scale set, `(candidates,)`.
+
+    The first formation's three points fix the overhead camera up to its scale by P3P
+    (independent of the candidate); the later formations' four points, placed with the
+    candidate's scale ratios `rho` (`(candidates, 3)`, `rho[:, 0] = 1`), must then
+    project onto their bearings. Sum of squared
+    chordal bearing errors (~ rad^2), best of the P3P solutions."""
+    unit = jnp.stack([P[0, 0], P[0, 1], P[0, 2], P[1, 1], P[1, 2], P[2, 1], P[2, 2]])
+    _, bearings, seen = _overhead_problem(obs, P)
+    sol = p3p(unit[:3], bearings[:3])
+    step_of = np.array([0, 0, 0, 1, 1, 2, 2])  # formation of each distinct point
+
+    def misfit(rho):
+        X = unit * rho[step_of][:, None]
+
+        def one(wxyz_xyz, valid):
+            T = jaxlie.SE3(wxyz_xyz)
+            q = jax.vmap(T.apply)(X)
+            chord = jnp.sum((safe_normalize(q) - bearings) ** 2, axis=-1)
+            front = jnp.all((jnp.sum(q * bearings, axis=-1) > 0) | ~seen)
+            cost = jnp.sum(jnp.where(seen, chord, 0.0))
+            return jnp.where(valid & front & jnp.isfinite(cost), cost, jnp.inf)
+
+        return jnp.min(jax.vmap(one)(sol.poses.wxyz_xyz, sol.valid))
+
+    ok = jnp.all(seen[:3])
+    return jnp.where(ok, jax.vmap(misfit)(rho), 0.0)
+
+
 def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
-    """Scales `(s0, s1, s2)` of the three formations from the four odometry distances."""
-    d, w = obs.odometry, _odometry_weights(obs)
-    w = w / jnp.max(w)
+    """Scales `(s0, s1, s2)` of the three formations from the four odometry distances.
+
+    Four distances fix three scales with one degree of freedom to spare, and the
+    quadratic ratio equations often leave two branches that both fit the odometry
+    within its noise (~4% of the paper's cycles). Among the branches whose odometry
+    chi-square is plausible, the one the overhead camera agrees with wins; the others'
+    poses would be a wrong local minimum for any refinement."""
+    d, w_abs = obs.odometry, _odometry_weights(obs)
+    w = w_abs / jnp.max(w_abs)
     # moves: [C2 0->1, C3 0->1, C2 1->2, C3 1->2]
     r01, ok01 = _ratio_candidates(P[0, 1:], P[1, 1:], d[:2], w[:2])
     r12, ok12 = _ratio_candidates(P[1, 1:], P[2, 1:], d[2:], w[2:])
@@ -229,7 +266,11 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     s_all, cost = jax.vmap(init_and_refine)(rho)
     allowed = ok01[combos[:, 0]] & ok12[combos[:, 1]] & jnp.all(s_all > 0, axis=1)
     cost = jnp.where(allowed & jnp.isfinite(cost), cost, jnp.inf)
-    best = jnp.argmin(cost)
+    # Plausible: odometry chi-square (1 spare dof) below its 99.98% quantile (13.8).
+    plausible = cost * jnp.max(w_abs) <= 13.8
+    misfit = _overhead_misfit(obs, P, s_all / s_all[:, :1])  # ratios to s0
+    score = jnp.where(plausible, misfit, jnp.inf)
+    best = jnp.where(jnp.any(jnp.isfinite(score)), jnp.argmin(score), jnp.argmin(cost))
     scales = s_all[best]
     ok = jnp.isfinite(cost[best]) & jnp.all(jnp.isfinite(scales))
     scales = jnp.where(ok, scales, 1.0)
