@@ -436,7 +436,7 @@ def random_starts(
     keys = jr.split(key, len(leaves))
     out = []
     for x, s, free, k in zip(leaves, spread_leaves, spec_leaves, keys):
-        u = jr.uniform(k, (n,) + x.shape, x.dtype, -1.0, 1.0) * s
+        u = jr.uniform(k, (n,) + x.shape, x.dtype, -1.0, 1.0) * jnp.asarray(s)[None]
         u = u.at[0].set(0.0)
         out.append(x[None] + (u if free else 0.0 * u))
     return jax.tree.unflatten(treedef, out)
