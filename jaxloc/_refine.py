@@ -468,14 +468,19 @@ def _implicit_step(strategy, T_place, T_over, data, scenario):
     that of the minimizer w.r.t. the measurements and the scenario (implicit function
     theorem on the gradient of the cost). Poses `_unpack(step, T_place, T_over)` are the
     solution with correct derivatives; the solution does not depend on the start."""
-    return jnp.zeros(6 * (T_place.shape[0]), T_place.dtype)
+    return _zero_step(T_place)
+
+
+def _zero_step(T_place):
+    # Derived from an input so that under `vmap` it is batched like its tangent.
+    return jnp.zeros(6 * T_place.shape[0], T_place.dtype) + 0.0 * T_place[0, 0]
 
 
 @ft.partial(_implicit_step.defjvp, symbolic_zeros=True)
 def _implicit_step_jvp(strategy, primals, tangents):
     T_place, T_over, data, scenario = primals
     _, _, data_dot, scenario_dot = tangents
-    zero = jnp.zeros(6 * T_place.shape[0], T_place.dtype)
+    zero = _zero_step(T_place)
 
     def gradient(theta, data, scenario):
         def cost(t):

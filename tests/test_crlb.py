@@ -250,3 +250,27 @@ def test_batched_lm_matches_optimistix_and_its_gradient_is_implicit():
         e = jnp.zeros_like(px).at[k, j, a].set(h)
         fd = (fast(px + e)[0][2] - fast(px - e)[0][2]) / (2 * h)
         np.testing.assert_allclose(grad[k, j, a], fd, rtol=1e-3, atol=1e-7)
+
+
+@pytest.mark.slow
+def test_vmapped_gradient_of_refinement_agrees_between_solvers():
+    """grad of a vmapped refinement w.r.t. a scenario parameter (the overhead camera's
+    position on the ceiling, through simulation and refinement): jaxloc's LM with its
+    implicit step equals optimistix LM with its implicit adjoint."""
+    sc = Scenario.paper("sequential")
+    keys = jr.split(jr.key(0), 2)
+
+    def loss(xy, key, solver):
+        s = eqx.tree_at(lambda s: s.overhead_xy, sc, xy)
+        truth, obs, _ = simulate_cycle(s, key)
+        start = CycleEstimate(truth.poses, jnp.ones(obs.num_steps), RESULTS.successful, {})
+        out = refine_cycle(obs, s, start, solver=solver, throw=False)
+        return jnp.sum(out.poses.T_world_overhead.translation())
+
+    grads = [
+        jax.jit(jax.grad(lambda xy: jnp.sum(jax.vmap(lambda k: loss(xy, k, solver))(keys))))(
+            jnp.zeros(2)
+        )
+        for solver in ("lm", "optx-lm")
+    ]
+    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-5)
