@@ -622,7 +622,7 @@ def bench_joint(quick: bool, report: dict) -> None:
 
 def bench_studies(quick: bool, report: dict, budget_s: float) -> None:
     chunk = 1024 if quick else 4096
-    trials = 2 * chunk if quick else 8 * chunk
+    trials = 4 * chunk if quick else 8 * chunk
     configs = [
         ("sequential", ("robust",), "float64"),
         ("sequential", ("robust", "refined"), "float64"),
@@ -836,10 +836,11 @@ def targets(report: dict) -> list[dict]:
 
 def print_table(report: dict) -> None:
     ov = report.get("overhead_pose", {}).get("rows", {})
-    print(
-        f"\n{'overhead pose (6 points, 2 px)':<62}{'problems/s':>12}{'med cm':>9}"
-        f"{'p90 cm':>9}{'failed':>8}"
-    )
+    if ov:
+        print(
+            f"\n{'overhead pose (6 points, 2 px)':<62}{'problems/s':>12}{'med cm':>9}"
+            f"{'p90 cm':>9}{'failed':>8}"
+        )
     for name, r in ov.items():
         if "skipped" in r:
             print(f"{name:<62}{'skipped: ' + r['skipped'][:60]}")
