@@ -43,6 +43,30 @@ from ._cycle_model import (
     pixel_sigma_per_axis as pixel_sigma_per_axis,
     placement_ids as placement_ids,
 )
+from ._design import (
+    crlb_objective as crlb_objective,
+    design_formation as design_formation,
+    design_penalty as design_penalty,
+    DesignResult as DesignResult,
+    evaluate_formation as evaluate_formation,
+    mc_objective as mc_objective,
+    objective_value as objective_value,
+    rmse_ci as rmse_ci,
+    rmse_table as rmse_table,
+    simulate_formation as simulate_formation,
+)
+from ._formation import (
+    constraint_margins as constraint_margins,
+    constraint_penalty as constraint_penalty,
+    constraint_values as constraint_values,
+    Formation as Formation,
+    FORMATION_FIELDS as FORMATION_FIELDS,
+    formation_filter as formation_filter,
+    Limits as Limits,
+    paper_fixed_moves as paper_fixed_moves,
+    place_fixed as place_fixed,
+    Placement as Placement,
+)
 from ._frontend import (
     detect_team_images as detect_team_images,
     ImageLocalization as ImageLocalization,

@@ -8,6 +8,8 @@ from nbclient import NotebookClient
 NOTEBOOKS = os.path.join(os.path.dirname(__file__), "..", "notebooks")
 
 
+# Slow (XLA compilation of four small studies, ~2 min): run by CI's second step.
+@pytest.mark.slow
 @pytest.mark.timeout(1200)
 @pytest.mark.parametrize("name", ["noise_study.ipynb"])
 def test_notebook_runs_at_small_size(name, monkeypatch):
