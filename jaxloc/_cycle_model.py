@@ -328,4 +328,10 @@ def cycle_jacobian(T_place, T_over, data: CycleData, scenario: Scenario, strateg
     given poses, shape `(residuals, 6 (placements - 1) + 6)`: placements 1, 2, ... then
     the overhead camera (placement 0, C1's start pose, is the gauge)."""
     _, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
-    return J[:, 1:].reshape(J.shape[0], -1)
+    return flat_jacobian(J)
+
+
+def flat_jacobian(J_local: Float[Array, "m p 6"]) -> Float[Array, "m n"]:
+    """Drop placement 0 (the gauge) from a [`whitened_with_jacobian`][] Jacobian and
+    flatten it to the tangent layout of `_unpack`: placements 1, 2, ..., overhead."""
+    return J_local[:, 1:].reshape(J_local.shape[0], -1)

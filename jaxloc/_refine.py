@@ -32,6 +32,7 @@ from ._cycle_model import (
     _predict,
     _unpack,
     cycle_data,
+    flat_jacobian,
     placement_ids,
     whitened,
     whitened_with_jacobian,
@@ -369,6 +370,24 @@ def _right_jacobians(theta, T0_place, T0_over, T_place, T_over):
     return jax.vmap(one)(T0, T, theta.reshape(-1, 6)).astype(theta.dtype)
 
 
+def _jvp_nonzero(f, primals, tangents):
+    """`jax.jvp(f, primals, tangents)[1]` over the pytree `primals`, differentiating only
+    the leaves whose tangent is not a `SymbolicZero`; `None` if every tangent is zero."""
+    leaves, tree = jax.tree.flatten(primals)
+    dots = tree.flatten_up_to(tangents)
+    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
+    if not live:
+        return None
+
+    def of_live(*values):
+        full = list(leaves)
+        for i, v in zip(live, values):
+            full[i] = v
+        return f(tree.unflatten(full))
+
+    return jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])[1]
+
+
 @ft.partial(_cycle_residuals.defjvp, symbolic_zeros=True)
 def _cycle_residuals_jvp(strategy, primals, tangents):
     # The Jacobian by the chain rule (jaxloc._cycle_model), ~20x cheaper than forward mode
@@ -382,25 +401,10 @@ def _cycle_residuals_jvp(strategy, primals, tangents):
     Jr = _right_jacobians(theta, T0_place, T0_over, T_place, T_over)
     J = jnp.einsum("mbi,bij->mbj", J_local[:, 1:], Jr).reshape(r.shape[0], -1)
     r_dot = J @ theta_dot
-    leaves, tree = jax.tree.flatten(rest)
-    dots = tree.flatten_up_to(rest_dot)
-    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
-    if live:
-
-        def of_live(*values):
-            full = list(leaves)
-            for i, v in zip(live, values):
-                full[i] = v
-            return _cycle_residuals.fun(strategy, theta, *tree.unflatten(full))
-
-        _, extra = jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])
-        r_dot = r_dot + extra
-    return r, r_dot
-
-
-def _flat_jacobian(J_local: Float[Array, "m p 6"]) -> Float[Array, "m n"]:
-    """Drop placement 0 (the gauge) and flatten to the tangent layout of `_unpack`."""
-    return J_local[:, 1:].reshape(J_local.shape[0], -1)
+    extra = _jvp_nonzero(
+        lambda rest: _cycle_residuals.fun(strategy, theta, *rest), rest, rest_dot
+    )
+    return r, r_dot if extra is None else r_dot + extra
 
 
 def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, atol, active):
@@ -424,7 +428,7 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
 
     def model(T_place, T_over):
         r, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
-        return r, _flat_jacobian(J)
+        return r, flat_jacobian(J)
 
     r0, J0 = model(T0_place, T0_over)
     init = (
@@ -492,20 +496,10 @@ def _implicit_step_jvp(strategy, primals, tangents):
     H = jax.jacfwd(gradient)(zero, data, scenario)
     eye = jnp.eye(zero.shape[0], dtype=zero.dtype)
     H_inv = jax.vmap(lambda e: _cholesky_solve(_cholesky(H), e))(eye).T
-    leaves, tree = jax.tree.flatten((data, scenario))
-    dots = tree.flatten_up_to((data_dot, scenario_dot))
-    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
-    if not live:
-        return zero, jnp.zeros_like(zero)
-
-    def of_live(*values):
-        full = list(leaves)
-        for i, v in zip(live, values):
-            full[i] = v
-        return gradient(zero, *tree.unflatten(full))
-
-    _, g_dot = jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])
-    return zero, -H_inv @ g_dot
+    g_dot = _jvp_nonzero(
+        lambda ds: gradient(zero, *ds), (data, scenario), (data_dot, scenario_dot)
+    )
+    return zero, jnp.zeros_like(zero) if g_dot is None else -H_inv @ g_dot
 
 
 def _estimate_placements(estimate: CycleEstimate, strategy: str):
