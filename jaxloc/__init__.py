@@ -118,10 +118,8 @@ from ._presets import (
     R_BODY_OVERHEAD as R_BODY_OVERHEAD,
     R_BODY_PTZ as R_BODY_PTZ,
 )
-from ._refine import (
-    refine_cycle as refine_cycle,
-    refine_overhead_pose as refine_overhead_pose,
-)
+from ._refine import refine_cycle as refine_cycle
+from ._refine_pose import refine_overhead_pose as refine_overhead_pose
 from ._render import (
     annulus_of as annulus_of,
     DEFAULT_MARKER_BGR as DEFAULT_MARKER_BGR,

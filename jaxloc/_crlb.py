@@ -39,8 +39,9 @@ from ._cycle_model import (
     pixel_sigma_per_axis,
     placement_ids,
 )
+from ._normal_equations import _cholesky
 from ._observations import CycleObservations, CyclePoses
-from ._refine import _cholesky, _estimate_placements
+from ._refine import _estimate_placements
 from ._scenario import Scenario
 from ._strategies import CycleEstimate
 

@@ -22,8 +22,9 @@ from jaxloc._crlb import (
     cycle_covariance,
     cycle_crlb,
 )
+from jaxloc._cycle_model import _first_occurrence, _predict
 from jaxloc._observations import CyclePoses
-from jaxloc._refine import _first_occurrence, _predict, refine_cycle
+from jaxloc._refine import refine_cycle
 from jaxloc._results import RESULTS
 from jaxloc._scenario import Scenario
 from jaxloc._simulate import noiseless, simulate_cycle

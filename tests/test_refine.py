@@ -11,7 +11,7 @@ import jaxlie
 import numpy as np
 import pytest
 from jaxloc._presets import paper_overhead_camera
-from jaxloc._refine import refine_overhead_pose
+from jaxloc._refine_pose import refine_overhead_pose
 from jaxloc._results import RESULTS
 from scipy.stats import chi2
 
