@@ -31,11 +31,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--criterion", choices=("A", "D"), default="A",
                    help="A: trace (expected squared error); D: log-det (crlb only)")
     p.add_argument("--free", default="all", metavar="LIST",
-                   help="comma-separated free parameters (base, side, headings, overhead_xy, "
-                        "overhead_heading, pan, tilt, zoom, move_mean, moves) or 'all'")
+                   help="comma-separated free parameters (base, side, initial_xy, headings, "
+                        "overhead_xy, overhead_heading, pan, tilt, zoom, move_mean, moves) or "
+                        "'all'")
+    p.add_argument("--triangle", choices=("isosceles", "general"),
+                   help="isosceles: design `base` and `side`; general: the three initial "
+                        "positions (`initial_xy`). Default: general if the scenario has "
+                        "`initial_xy`, else isosceles")
     p.add_argument("--moves", choices=("random", "fixed"), default="random",
-                   help="random: the scenario's random moves (writable as a scenario file); "
-                        "fixed: design each move's length and direction (no scenario field yet)")
+                   help="random: the scenario's random moves, N(move_mean, move_std); fixed: "
+                        "design each move's length and direction (written as the scenario's "
+                        "`moves`; starts from the scenario's fixed moves if it has them, else "
+                        "0.8 m straight ahead)")
     p.add_argument("--weights", default="1,0,0,0", metavar="C,C1,C2,C3",
                    help="per-camera weights of the position error (default: overhead camera)")
     p.add_argument("--starts", type=int, default=8, help="parallel starts (first = scenario's)")
@@ -97,6 +104,7 @@ def formation_to_dict(formation) -> dict:
 
 
 def _cmd_design(args) -> int:
+    import equinox as eqx
     import jax.random as jr
 
     from ._design import design_formation, evaluate_formation, objective_value, rmse_table
@@ -115,11 +123,6 @@ def _cmd_design(args) -> int:
     free = _parse_free(args.free)
     weights = _parse_weights(args.weights)
     fixed = args.moves == "fixed"
-    if fixed and args.out:
-        raise ValueError(
-            "--moves fixed cannot be written as a scenario file (scenarios have random moves "
-            "only); use --formation-json FILE, or --moves random with --out."
-        )
     if args.scenario:
         scenario = load_scenario(args.scenario)
         if args.strategy and args.strategy != scenario.strategy:
@@ -131,8 +134,21 @@ def _cmd_design(args) -> int:
     else:
         scenario = Scenario.paper(args.strategy or "sequential")
     strategy = scenario.strategy
-    formation = Formation.from_scenario(
-        scenario, paper_fixed_moves(strategy) if fixed else None
+    if not fixed:
+        start_moves = None
+    elif scenario.moves is not None:
+        start_moves = scenario.moves
+    else:
+        start_moves = paper_fixed_moves(strategy)
+    formation = Formation.from_scenario(scenario, start_moves)
+    general = args.triangle == "general" or (
+        args.triangle is None and scenario.initial_xy is not None
+    )
+    formation = eqx.tree_at(
+        lambda f: f.initial_xy,
+        formation,
+        scenario.formation_xy() if general else None,
+        is_leaf=lambda x: x is None,
     )
     limits = Limits(image_margin_px=float(args.image_margin))
     key = jr.key(args.seed)
@@ -169,10 +185,10 @@ def _cmd_design(args) -> int:
     }
     # Compare both formations on fresh draws (not the ones optimized on).
     k_fresh = jr.key(args.seed + 1_000_003)
-    baseline = Formation.from_scenario(scenario)  # the scenario's own, random moves
+    baseline = Formation.from_scenario(scenario)  # the scenario's own formation and moves
     vals = {}
     runs = [("initial", res.initial), ("optimized", best)]
-    if fixed:
+    if fixed != baseline.fixed_moves:
         runs.append(("scenario", baseline))
     for name, f in runs:
         vals[name] = float(objective_value(
@@ -190,8 +206,9 @@ def _cmd_design(args) -> int:
           f"{show(float(res.objective))}")
     print(f"Objective {unit}, on fresh draws:      {show(vals['initial'])} -> "
           f"{show(vals['optimized'])}")
-    if fixed:
-        print(f"Objective {unit} of the scenario's own formation (random moves, fresh draws): "
+    if "scenario" in vals:
+        kind = "fixed" if baseline.fixed_moves else "random"
+        print(f"Objective {unit} of the scenario's own formation ({kind} moves, fresh draws): "
               f"{show(vals['scenario'])}")
     margins, in_view = _margins(best, scenario, limits, args.seed, fixed or args.strict_moves)
     report["objective"] = {
@@ -211,8 +228,10 @@ def _cmd_design(args) -> int:
     for k, v in formation_to_dict(best).items():
         if v is not None:
             print(f"  {k:<17} {np.round(np.asarray(v), 4).tolist()}")
+    designed = best.to_scenario(scenario)
     if args.out:
-        save_scenario(best.to_scenario(scenario), args.out)
+        save_scenario(designed, args.out)
+        designed = load_scenario(args.out)  # verify what the file says
         print(f"\nwrote {args.out} (run it with: jaxloc simulate --scenario {args.out})")
     if args.formation_json:
         with open(args.formation_json, "w") as f:
@@ -224,14 +243,18 @@ def _cmd_design(args) -> int:
         print(f"wrote {args.plot}")
     if args.verify_trials:
         n = args.verify_trials
+        kind = "fixed" if baseline.fixed_moves else "random"
         print(
-            f"\nFresh Monte Carlo: {n} trials each, seed {args.verify_seed}, refined estimator; "
-            "before = the scenario's own formation (random moves, run_study), after = the "
-            "optimized one"
-            + (" (fixed moves, the same trial pipeline)" if fixed else " (run_study)")
+            f"\nFresh Monte Carlo (run_study, as `jaxloc simulate --methods refined`): {n} "
+            f"trials each, seed {args.verify_seed}, refined estimator; before = the "
+            f"scenario's own formation ({kind} moves), after = the optimized one "
+            f"({args.moves} moves"
+            + (f", as read back from {args.out})" if args.out else ")")
         )
         before = evaluate_formation(baseline, scenario, n, seed=args.verify_seed)
-        after = evaluate_formation(best, scenario, n, seed=args.verify_seed)
+        after = evaluate_formation(
+            Formation.from_scenario(designed), designed, n, seed=args.verify_seed
+        )
         table = rmse_table(before, after)
         report["verification"] = {"trials": n, "seed": args.verify_seed, **table}
         print(format_verification(table))

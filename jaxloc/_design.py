@@ -35,13 +35,11 @@ from ._formation import (
     Placement,
     placement_from_truth,
 )
-from ._montecarlo import run_study, trial_key
-from ._observations import CycleObservations, move_start_step, moving_robot
-from ._presets import R_BODY_OMNI, R_BODY_PTZ
+from ._montecarlo import run_study
 from ._refine import refine_cycle
-from ._results import RESULTS, status_code
+from ._results import RESULTS
 from ._scenario import Scenario
-from ._simulate import _omni_call, _pixel_noise, _visibility
+from ._simulate import _visibility
 from ._strategies import localize_cycle_methods
 from ._trial import CAMERAS, REFINE_MAX_STEPS, score
 
@@ -59,25 +57,24 @@ CRITERIA = ("A", "D")
 
 
 def simulate_formation(formation: Formation, scenario: Scenario, key: PRNGKeyArray):
-    """Simulate one cycle of `formation` in `scenario`'s world.
-
-    Random moves: exactly [`jaxloc.simulate_cycle`][] on `formation.apply(scenario)`.
-    Fixed moves: the robots are placed by [`place_fixed`][] and every observation is
-    synthesized as the simulator does (project, pixel noise, unproject; odometry with
-    relative noise); a sighting outside its camera's view is not measured.
+    """Simulate one cycle of `formation` in `scenario`'s world: exactly
+    [`jaxloc.simulate_cycle`][] on `formation.apply(scenario)` (random moves drawn and
+    resampled as the simulator does; fixed moves applied as given, the scenario's `moves`
+    field), so that what a design optimizes is what `jaxloc simulate` of its scenario
+    file runs.
 
     **Returns:** `(poses, observations, placement, all_visible)`: the true
     [`jaxloc.CyclePoses`][] in `W`, the [`jaxloc.CycleObservations`][], the
-    [`Placement`][] in `E`, and whether every required sighting exists.
+    [`Placement`][] in `E` (for fixed moves from [`place_fixed`][], which places the
+    robots exactly where the simulator does, as plain matrices), and whether every
+    required sighting exists (and the robots keep `min_separation`).
     """
     from ._simulate import simulate_cycle
 
     scn = formation.apply(scenario)
-    if not formation.fixed_moves:
-        truth, obs, ok = simulate_cycle(scn, key)
-        return truth.poses, obs, placement_from_truth(truth), ok
-    pl = place_fixed(formation, scn)
-    return pl.poses(), _observe(scn, pl, key), pl, _all_visible(scn, pl)
+    truth, obs, ok = simulate_cycle(scn, key)
+    pl = place_fixed(formation, scn) if formation.fixed_moves else placement_from_truth(truth)
+    return truth.poses, obs, pl, ok
 
 
 def _relative(pl: Placement):
@@ -89,49 +86,6 @@ def _all_visible(scn: Scenario, pl: Placement):
     p_over = jnp.einsum("ab,kja->kjb", pl.R_overhead, pl.p_body - pl.p_overhead[None, None])
     ok, _, _ = _visibility(scn, _relative(pl), p_over)
     return jnp.all(ok)
-
-
-def _observe(scn: Scenario, pl: Placement, key) -> CycleObservations:
-    """Observations of a placed cycle: the simulator's step 3 and 4 (see
-    [`jaxloc.simulate_cycle`][]) for given poses."""
-    dtype = pl.p_body.dtype
-    strategy = scn.strategy
-    k_ptz, k_omni, k_over, k_odo = jr.split(key, 4)
-    rel = _relative(pl)
-    p_over = jnp.einsum("ab,kja->kjb", pl.R_overhead, pl.p_body - pl.p_overhead[None, None])
-    _, over_vis, mutual_vis = _visibility(scn, rel, p_over)
-    eye = jnp.broadcast_to(np.eye(3, dtype=bool)[:, :, None], rel.shape)
-    rel = jnp.where(eye, jnp.array([1.0, 0.0, 0.0], dtype), rel)
-    M_ptz = jnp.asarray(R_BODY_PTZ, dtype)
-    M_omni = jnp.asarray(R_BODY_OMNI, dtype)
-    uv_ptz = scn.ptz.project(jnp.einsum("ab,...a->...b", M_ptz, rel[:, 0]))
-    uv_ptz = uv_ptz + _pixel_noise(scn, k_ptz, uv_ptz.shape[:-1], dtype)
-    b_ptz = jnp.einsum("ab,...b->...a", M_ptz, scn.ptz.unproject(uv_ptz))
-    uv_omni = _omni_call(scn, "project", jnp.einsum("ab,...a->...b", M_omni, rel[:, 1:]))
-    uv_omni = uv_omni + _pixel_noise(scn, k_omni, uv_omni.shape[:-1], dtype)
-    b_omni = jnp.einsum("ab,...b->...a", M_omni, _omni_call(scn, "unproject", uv_omni))
-    mutual = jnp.where(eye, 0.0, jnp.concatenate([b_ptz[:, None], b_omni], axis=1))
-    mutual_pixels = jnp.concatenate([uv_ptz[:, None], uv_omni], axis=1)
-    mutual_pixels = jnp.where(mutual_vis[..., None], mutual_pixels, jnp.nan)
-    over_uv = scn.overhead.project(p_over)
-    over_uv = over_uv + _pixel_noise(scn, k_over, over_uv.shape[:-1], dtype)
-    over_b = scn.overhead.unproject(over_uv)
-    over_uv = jnp.where(over_vis[..., None], over_uv, jnp.nan)
-    starts, movers = move_start_step(strategy), moving_robot(strategy)
-    p = pl.p_body
-    dist = jnp.linalg.norm(p[starts + 1, movers] - p[starts, movers], axis=-1)
-    rel_sigma = scn.odometry_sigma_rel.astype(dtype)
-    measured = dist * (1.0 + rel_sigma * jr.normal(k_odo, dist.shape, dtype))
-    return CycleObservations(
-        mutual=mutual,
-        overhead=over_b,
-        odometry=measured,
-        odometry_sigma=rel_sigma * measured,
-        strategy=strategy,
-        overhead_visible=over_vis,
-        mutual_pixels=mutual_pixels,
-        overhead_pixels=over_uv,
-    )
 
 
 # --------------------------------------------------------------------------------------
@@ -286,13 +240,13 @@ def design_penalty(
 #: coordinates and in the random starts.
 FIELD_SCALES = {
     "base": 0.1, "side": 0.1, "headings": 0.1, "overhead_xy": 0.1, "overhead_heading": 0.1,
-    "pan": 0.1, "tilt": 0.1, "zoom": 0.05, "move_mean": 0.1, "moves": 0.1,
+    "pan": 0.1, "tilt": 0.1, "zoom": 0.05, "move_mean": 0.1, "moves": 0.1, "initial_xy": 0.1,
 }  # fmt: skip
 #: Half-width (natural units) of the uniform perturbation of each field for random starts.
 START_SPREAD = {
     "base": 0.2, "side": 0.15, "headings": 0.1, "overhead_xy": 0.3,
     "overhead_heading": 0.5 * math.pi, "pan": 0.1, "tilt": 0.05, "zoom": 0.0,
-    "move_mean": 0.2, "moves": 0.3,
+    "move_mean": 0.2, "moves": 0.3, "initial_xy": 0.15,
 }  # fmt: skip
 
 
@@ -539,21 +493,6 @@ def design_formation(
 # Verification by fresh Monte Carlo.
 
 
-@eqx.filter_jit
-def _fixed_chunk(formation: Formation, scenario: Scenario, seed, start, size: int):
-    def one(i):
-        key = trial_key(seed, i)
-        poses, obs, _, visible = simulate_formation(formation, scenario, key)
-        (robust,) = localize_cycle_methods(obs, ("robust",))
-        scn = formation.apply(scenario)
-        est = refine_cycle(obs, scn, robust, max_steps=REFINE_MAX_STEPS, throw=False)
-        result = RESULTS.where(visible, est.result, RESULTS.not_visible)
-        pos, rot, _, _ = score(est.poses, poses)
-        return status_code(result)[None], pos[None], rot[None]
-
-    return jax.vmap(one)(start + jnp.arange(size))
-
-
 def evaluate_formation(
     formation: Formation,
     scenario: Scenario,
@@ -563,34 +502,19 @@ def evaluate_formation(
     chunk_size: int = 2048,
     progress: bool = False,
 ) -> dict[str, np.ndarray]:
-    """Fresh Monte Carlo of the refined estimator on `formation` (DESIGN §9's check).
-
-    Random moves: [`jaxloc.run_study`][] of `formation.to_scenario(scenario)` with
-    `methods=("refined",)`. Fixed moves: the same trial (simulate, closed-form start,
-    joint refinement, score; trial `i` keyed `fold_in(key(seed), i)`) on
-    [`simulate_formation`][]'s cycles.
+    """Fresh Monte Carlo of the refined estimator on `formation` (DESIGN §9's check):
+    [`jaxloc.run_study`][] of `formation.to_scenario(scenario)` (random or fixed moves)
+    with `methods=("refined",)`, the study `jaxloc simulate --scenario FILE --seed SEED
+    --methods refined` runs on the saved scenario.
 
     **Returns:** `{"status": (n, 1), "position": (n, 1, 4), "rotation": (n, 1, 4)}` as
     numpy arrays (cameras C, C1, C2, C3; metres, radians).
     """
-    if not formation.fixed_moves:
-        study = run_study(
-            formation.to_scenario(scenario), n_trials, seed=seed, chunk_size=chunk_size,
-            methods=("refined",), progress=progress,
-        )
-        return {k: study[k] for k in ("status", "position", "rotation")}
-    outs = []
-    for start in range(0, n_trials, chunk_size):
-        size = min(chunk_size, n_trials - start)
-        s, p, r = _fixed_chunk(
-            formation, scenario, jnp.asarray(seed, jnp.uint32), jnp.asarray(start), chunk_size
-        )
-        outs.append((np.asarray(s)[:size], np.asarray(p)[:size], np.asarray(r)[:size]))
-    return {
-        "status": np.concatenate([o[0] for o in outs]),
-        "position": np.concatenate([o[1] for o in outs]),
-        "rotation": np.concatenate([o[2] for o in outs]),
-    }
+    study = run_study(
+        formation.to_scenario(scenario), n_trials, seed=seed, chunk_size=chunk_size,
+        methods=("refined",), progress=progress,
+    )
+    return {k: study[k] for k in ("status", "position", "rotation")}
 
 
 def rmse_ci(

@@ -11,18 +11,23 @@ Moves come in two kinds:
 
 - **random** (`moves=None`): each move is drawn as [`jaxloc.simulate_cycle`][] draws it,
   length ~ N(`move_mean`, `scenario.move_std`), uniform direction, resampled until every
-  required sighting exists. This is what a [`jaxloc.Scenario`][] file expresses, so such a
-  formation is written as a scenario that `jaxloc simulate` runs unchanged.
+  required sighting exists.
 - **fixed** (`moves` of shape `(moves, 2)`): move `m` has length `moves[m, 0]` (m) and
   direction `moves[m, 1]` (rad, in the mover's body frame, from body x towards body y,
-  the same convention as the simulator's random direction). Scenario files cannot yet
-  express fixed moves; see [`jaxloc.Formation.to_scenario`][].
+  the same convention as the simulator's random direction): exactly
+  [`jaxloc.Scenario`][]'s `moves` field.
+
+The initial triangle is the isosceles one of `base` and `side`, or, with `initial_xy`
+given, any triangle (`Scenario.initial_xy`). Every field has its counterpart in a
+[`jaxloc.Scenario`][] (the PTZ setting in `scenario.ptz`), so a formation is written as a
+scenario file ([`jaxloc.Formation.to_scenario`][]) that `jaxloc simulate` runs unchanged.
 
 The constraints are smooth functions `g >= 0` (feasible) of the placed formation, in
 natural units, so that a penalty $\mu \sum \max(0, -g/s)^2$ can be added to any objective.
 """
 
 import math
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -41,10 +46,14 @@ from ._world import body_frame_on_surface, formation_xy
 #: Names of the fields of a [`jaxloc.Formation`][], in order.
 FORMATION_FIELDS = (
     "base", "side", "headings", "overhead_xy", "overhead_heading", "pan", "tilt", "zoom",
-    "move_mean", "moves",
+    "move_mean", "moves", "initial_xy",
 )  # fmt: skip
-#: Fields a scenario file can express (everything but fixed `moves`).
-SCENARIO_FIELDS = FORMATION_FIELDS[:-1]
+#: The optional fields (`None` or an array).
+OPTIONAL_FIELDS = ("moves", "initial_xy")
+_ARRAY_FIELDS = tuple(n for n in FORMATION_FIELDS if n not in OPTIONAL_FIELDS)
+
+
+_FROM_SCENARIO: Any = object()  # default of `Formation.from_scenario(moves=...)`
 
 
 def _as_float(x: ArrayLike) -> Array:
@@ -62,7 +71,7 @@ class Formation(eqx.Module):
 
     - `base`, `side`: the initial isosceles triangle (m): base C2–C3, legs C1–C2 and
       C1–C3, placed by [`jaxloc.formation_xy`][] (origin at the middle of the base, C1 at
-      `-x`).
+      `-x`). Unused if `initial_xy` is given.
     - `headings`: initial headings of C1, C2, C3 (rad, from `E` +x towards +y), `(3,)`.
     - `overhead_xy`: `(x, y)` of the climbing robot on the ceiling (m), `(2,)`.
     - `overhead_heading`: its heading (rad). Its camera's tilt follows the ceiling's
@@ -72,6 +81,8 @@ class Formation(eqx.Module):
     - `moves`: `None` (random moves) or fixed moves, shape `(moves, 2)`: length (m) and
       direction in the mover's body frame (rad), in the strategy's move order
       (sequential: C2, C3, C1; concurrent: C2, C3, C2, C3).
+    - `initial_xy`: `None` (the isosceles triangle of `base`, `side`) or a general initial
+      triangle: `(x, y)` of C1, C2, C3 in `E` (m), shape `(3, 2)`.
     """
 
     base: Float[Array, ""]
@@ -84,6 +95,7 @@ class Formation(eqx.Module):
     zoom: Float[Array, ""]
     move_mean: Float[Array, ""]
     moves: Float[Array, "moves 2"] | None
+    initial_xy: Float[Array, "3 2"] | None
 
     def __init__(
         self,
@@ -97,6 +109,7 @@ class Formation(eqx.Module):
         zoom: Float[ArrayLike, ""] = 0.0,
         move_mean: Float[ArrayLike, ""] = 0.8,
         moves: Float[ArrayLike, "moves 2"] | None = None,
+        initial_xy: Float[ArrayLike, "3 2"] | None = None,
     ):
         """**Arguments:** the fields above; the defaults are the paper's formation with
         random moves."""
@@ -110,10 +123,11 @@ class Formation(eqx.Module):
         self.zoom = _as_float(zoom)
         self.move_mean = _as_float(move_mean)
         self.moves = None if moves is None else _as_float(moves)
+        self.initial_xy = None if initial_xy is None else _as_float(initial_xy)
 
     def __check_init__(self):
         shapes = {"headings": (3,), "overhead_xy": (2,)}
-        for name in SCENARIO_FIELDS:
+        for name in _ARRAY_FIELDS:
             x = getattr(self, name)
             want = shapes.get(name, ())
             # Leading batch axes are allowed (a vmapped multi-start builds batched formations).
@@ -126,18 +140,39 @@ class Formation(eqx.Module):
                 "`Formation(moves=...)` must have shape (moves, 2) (length, direction) or "
                 f"be None; got shape {self.moves.shape}."
             )
+        if self.initial_xy is not None and self.initial_xy.shape[-2:] != (3, 2):
+            raise ValueError(
+                "`Formation(initial_xy=...)` must have shape (3, 2) (C1, C2, C3) or be None; "
+                f"got shape {self.initial_xy.shape}."
+            )
 
     @property
     def fixed_moves(self) -> bool:
         """Whether the moves are fixed (`moves` given) rather than random."""
         return self.moves is not None
 
+    @property
+    def general_triangle(self) -> bool:
+        """Whether the initial triangle is `initial_xy` rather than `base`/`side`."""
+        return self.initial_xy is not None
+
+    def triangle_xy(self) -> Float[Array, "3 2"]:
+        """Initial `(x, y)` of C1, C2, C3 in `E` (m), shape `(3, 2)`."""
+        if self.initial_xy is not None:
+            return self.initial_xy
+        return formation_xy(self.base, self.side)
+
     @classmethod
     def from_scenario(
-        cls, scenario: Scenario, moves: Float[ArrayLike, "moves 2"] | None = None
+        cls, scenario: Scenario, moves: Any = _FROM_SCENARIO
     ) -> "Formation":
-        """The formation of `scenario` (its triangle, headings, overhead placement, PTZ
-        setting and mean move length), with random moves, or the given fixed `moves`."""
+        """The formation of `scenario`: its triangle (`base`, `side`, `initial_xy`),
+        headings, overhead placement, PTZ setting, mean move length and moves.
+
+        `moves`: by default the scenario's own (`None`: random, or its fixed moves);
+        `None` for random moves, or an array `(moves, 2)` of fixed moves."""
+        if moves is _FROM_SCENARIO:
+            moves = scenario.moves
         if moves is not None:
             moves = _as_float(moves)
             want = (num_moves(scenario.strategy), 2)
@@ -157,12 +192,23 @@ class Formation(eqx.Module):
             zoom=scenario.ptz.zoom,
             move_mean=scenario.move_mean,
             moves=moves,
+            initial_xy=scenario.initial_xy,
         )
 
     def apply(self, scenario: Scenario) -> Scenario:
-        """`scenario` with this formation's parameters (traceable: usable inside `jit` and
-        `grad`). Fixed `moves` are not part of a scenario and are ignored here."""
+        """`scenario` with this formation's parameters, moves (random or fixed) and
+        initial triangle (traceable: usable inside `jit` and `grad`; no validation)."""
         dtype = scenario.base.dtype
+
+        def cast(x):
+            return None if x is None else jnp.asarray(x, dtype)
+
+        scenario = eqx.tree_at(
+            lambda s: (s.moves, s.initial_xy),
+            scenario,
+            (cast(self.moves), cast(self.initial_xy)),
+            is_leaf=lambda x: x is None,
+        )
         return eqx.tree_at(
             lambda s: (
                 s.base, s.side, s.headings, s.overhead_xy, s.overhead_heading,
@@ -177,19 +223,13 @@ class Formation(eqx.Module):
         )  # fmt: skip
 
     def to_scenario(self, scenario: Scenario) -> Scenario:
-        """A validated [`jaxloc.Scenario`][]: `scenario` with this formation's parameters,
-        ready for [`jaxloc.save_scenario`][] and `jaxloc simulate`. Eager.
+        """A validated [`jaxloc.Scenario`][]: `scenario` with this formation's parameters
+        (fixed `moves` and a general `initial_xy` included), ready for
+        [`jaxloc.save_scenario`][] and `jaxloc simulate`. Eager.
 
-        Raises `ValueError` if the formation has fixed `moves` (a scenario file has no
-        field for them: its moves are random) or if a value is out of the scenario's
-        domain (e.g. `zoom` outside `[0, 1]`).
+        Raises `ValueError` if a value is out of the scenario's domain (e.g. `zoom`
+        outside `[0, 1]`, a non-positive move length).
         """
-        if self.fixed_moves:
-            raise ValueError(
-                "This `Formation` has fixed `moves`, which a Scenario cannot express (its "
-                "moves are random, N(move_mean, move_std) with uniform direction); design "
-                "with `moves=None` to get a scenario file."
-            )
         s = self.apply(scenario)
         # Rebuild through the constructor so that its validation runs on the new values.
         return Scenario(
@@ -203,7 +243,7 @@ class Formation(eqx.Module):
             odometry_sigma_rel=s.odometry_sigma_rel, strategy=s.strategy,
             move_candidates=s.move_candidates, noise_model=s.noise_model,
             require_overhead=s.require_overhead, require_ptz=s.require_ptz,
-            require_omni=s.require_omni,
+            require_omni=s.require_omni, initial_xy=s.initial_xy, moves=s.moves,
         )  # fmt: skip
 
 
@@ -217,11 +257,13 @@ def formation_filter(formation: Formation, free: tuple[str, ...] | str = "all") 
 
     - `formation`: the formation (its structure: `moves` present or not).
     - `free`: field names (see `jaxloc.FORMATION_FIELDS`), or `"all"`: every field the
-      formation uses (`move_mean` for random moves, `moves` for fixed ones).
+      formation uses (`move_mean` for random moves, `moves` for fixed ones; `base` and
+      `side`, or `initial_xy` for a general triangle).
     """
     if free == "all":
-        free = tuple(n for n in FORMATION_FIELDS if n != ("move_mean" if formation.fixed_moves
-                                                          else "moves"))  # fmt: skip
+        unused = ("move_mean",) if formation.fixed_moves else ("moves",)
+        unused += ("base", "side") if formation.general_triangle else ("initial_xy",)
+        free = tuple(n for n in FORMATION_FIELDS if n not in unused)
     if isinstance(free, str):
         free = (free,)
     for name in free:
@@ -234,6 +276,12 @@ def formation_filter(formation: Formation, free: tuple[str, ...] | str = "all") 
         raise ValueError(
             "`free` includes 'moves' but the formation's moves are random (`moves=None`); "
             "give fixed moves (e.g. `paper_fixed_moves`) to design them."
+        )
+    if "initial_xy" in free and not formation.general_triangle:
+        raise ValueError(
+            "`free` includes 'initial_xy' but the formation's triangle is given by `base` "
+            "and `side` (`initial_xy=None`); give `initial_xy` (e.g. "
+            "`formation_xy(base, side)`) to design a general triangle."
         )
     spec = jax.tree.map(lambda _: False, formation)
     return eqx.tree_at(
@@ -312,7 +360,7 @@ def place_fixed(formation: Formation, scenario: Scenario) -> Placement:
         )
     dtype = scenario.base.dtype
     headings = formation.headings.astype(dtype)
-    xy = formation_xy(formation.base, formation.side).astype(dtype)
+    xy = formation.triangle_xy().astype(dtype)
     movers, starts = moving_robot(strategy), move_start_step(strategy)
     xys = [xy]
     for k in range(num_steps(strategy) - 1):
@@ -440,7 +488,8 @@ def constraint_values(
     `elevation_margin`), `separation` (m; pairwise distance minus `min_separation` and
     `separation`), `move_length` (m; fixed moves' lengths or `move_mean` within bounds),
     `triangle_angle` (rad; smallest interior angle of each formation minus `min_angle`),
-    `zoom` (within `[0, 1]`), `triangle` (`side - base / 2`: the triangle exists).
+    `zoom` (within `[0, 1]`), `triangle` (`side - base / 2`: the isosceles triangle
+    exists; absent for a general `initial_xy` triangle).
     Sightings a scenario does not require (`require_*`) are left out.
 
     **Arguments:**
@@ -497,7 +546,8 @@ def constraint_values(
     out["triangle_angle"] = (_triangle_angles(p) - m).reshape(-1)
     zoom = formation.zoom.astype(dtype)
     out["zoom"] = jnp.stack([zoom, 1.0 - zoom])
-    out["triangle"] = (formation.side - 0.5 * formation.base).astype(dtype)[None] - 0.05
+    if not formation.general_triangle:  # (else `triangle_angle` keeps it a triangle)
+        out["triangle"] = (formation.side - 0.5 * formation.base).astype(dtype)[None] - 0.05
     return out
 
 

@@ -15,6 +15,7 @@ ground: {type: saddle, radius_x: -8.0, radius_y: 8.0, height: 0.0}
 ceiling: {type: sinusoid, height: 3.5, amplitude: 0.25, period: 10.0, phase: 0.0}
 base: 2.0
 side: 1.5
+# initial_xy: [[-1.1, 0.0], [0.0, 1.0], [0.0, -1.0]]   # optional C1, C2, C3: overrides base, side
 headings: [0.0, 0.0, 0.0]       # C1, C2, C3 (rad, from E's +x towards +y)
 overhead_xy: [0.0, 0.0]
 overhead_heading: 1.5707963267948966
@@ -25,6 +26,7 @@ cameras:
   omni3: {type: omni, xi: 1.0, fx: 185.0, fy: 185.0, cx: 319.5, cy: 239.5}
 move_mean: 0.8
 move_std: 0.2
+# moves: [[0.8, 0.0], [0.8, 0.0], [0.8, 0.0]]   # optional fixed moves: [length, direction]
 move_candidates: 32
 min_separation: 0.4
 pixel_sigma: 2.0
@@ -35,7 +37,10 @@ require_ptz: true
 require_omni: true
 ```
 
-Missing keys take the defaults of [`jaxloc.Scenario`][] (the paper's simulation).
+Missing keys take the defaults of [`jaxloc.Scenario`][] (the paper's simulation); in
+particular without `initial_xy` the triangle is the isosceles `base`/`side` one, and
+without `moves` the moves are random. `initial_xy` and `moves` may also be written as
+`null`.
 Surface types: `saddle` (`radius_x`, `radius_y`, `height`), `flat` (`height`),
 `sinusoid` (`height`, `amplitude`, `period`, `phase`). Camera types: `pinhole`, `ptz`,
 `omni`, with the constructor arguments of [`jaxloc.PinholeCamera`][],
@@ -58,7 +63,7 @@ import yaml
 from jaxtyping import Array, ArrayLike, Float
 
 from ._camera import OmniCamera, PinholeCamera, PTZCamera
-from ._observations import STRATEGIES
+from ._observations import num_moves, STRATEGIES
 from ._presets import paper_omni_camera, paper_overhead_camera, paper_ptz_camera
 from ._world import (
     AbstractSurface,
@@ -98,7 +103,11 @@ class Scenario(eqx.Module):
 
     - `ground`, `ceiling`: [`jaxloc.AbstractSurface`][]s the ground robots and the
       climbing robot stand on.
-    - `base`, `side`: initial isosceles triangle (m): base C2–C3, legs C1–C2 and C1–C3.
+    - `base`, `side`: initial isosceles triangle (m): base C2–C3, legs C1–C2 and C1–C3,
+      placed by [`jaxloc.formation_xy`][]. Ignored if `initial_xy` is given.
+    - `initial_xy`: `None` (default: the isosceles triangle of `base`, `side`) or a
+      general initial triangle: `(x, y)` of C1, C2, C3 in `E` (m), shape `(3, 2)`. Read
+      the triangle in use with [`jaxloc.Scenario.formation_xy`][].
     - `headings`: initial headings of C1, C2, C3 (rad, in the `E` x-y plane from +x
       towards +y), shape `(3,)`. Default 0: all face the base (+x); C1's PTZ then sees
       C2 and C3 at ±41.8° inside its 85° field of view.
@@ -107,7 +116,14 @@ class Scenario(eqx.Module):
       (camera x = body -y) runs along `E` +x, the triangle's long direction.
     - `overhead`, `ptz`, `omni2`, `omni3`: the cameras of C, C1, C2, C3.
     - `move_mean`, `move_std`: move length ~ N(mean, std) (m), clipped to at least
-      0.05 m.
+      0.05 m. Unused with fixed `moves`.
+    - `moves`: `None` (default: random moves, see [`jaxloc.simulate_cycle`][]) or the
+      strategy's fixed moves, shape `(num_moves, 2)`: row `m` is move `m`'s length (m,
+      > 0) and direction (rad, in the mover's body frame at the start of the move, from
+      body x towards body y), in the strategy's move order (sequential: C2, C3, C1;
+      concurrent: C2 and C3 together, then C2 and C3 again). Applied exactly: never
+      resampled; a cycle whose fixed moves break a required sighting is reported
+      infeasible.
     - `min_separation`: smallest allowed distance between two ground robots after a move
       (m), a collision guard (the Pioneer robots are ~0.4 m across). Our addition.
     - `pixel_sigma`: pixel noise scale (px), see `noise_model`.
@@ -125,6 +141,7 @@ class Scenario(eqx.Module):
     ceiling: AbstractSurface
     base: Float[Array, ""]
     side: Float[Array, ""]
+    initial_xy: Float[Array, "3 2"] | None
     headings: Float[Array, "3"]
     overhead_xy: Float[Array, "2"]
     overhead_heading: Float[Array, ""]
@@ -134,6 +151,7 @@ class Scenario(eqx.Module):
     omni3: OmniCamera
     move_mean: Float[Array, ""]
     move_std: Float[Array, ""]
+    moves: Float[Array, "moves 2"] | None
     min_separation: Float[Array, ""]
     pixel_sigma: Float[Array, ""]
     odometry_sigma_rel: Float[Array, ""]
@@ -168,10 +186,14 @@ class Scenario(eqx.Module):
         require_overhead: bool = True,
         require_ptz: bool = True,
         require_omni: bool = True,
+        initial_xy: Float[ArrayLike, "3 2"] | None = None,
+        moves: Float[ArrayLike, "moves 2"] | None = None,
     ):
         """**Arguments:** the fields above; `None` surfaces and cameras take the paper's
         defaults: `SaddleSurface(-8, 8)`, `SinusoidSurface(3.5, 0.25, 10)`,
         `paper_overhead_camera()`, `paper_ptz_camera()`, `paper_omni_camera()`.
+        `initial_xy` and `moves` come last (keyword use recommended) so that positional
+        calls written before they existed keep their meaning.
         """
         self.ground = SaddleSurface() if ground is None else ground
         self.ceiling = SinusoidSurface() if ceiling is None else ceiling
@@ -195,6 +217,8 @@ class Scenario(eqx.Module):
         self.require_overhead = require_overhead
         self.require_ptz = require_ptz
         self.require_omni = require_omni
+        self.initial_xy = None if initial_xy is None else _as_float(initial_xy)
+        self.moves = None if moves is None else _as_float(moves)
 
     def __check_init__(self):
         def bad(name, msg):
@@ -252,6 +276,29 @@ class Scenario(eqx.Module):
         b, s = _concrete(self.base), _concrete(self.side)
         if b is not None and s is not None and not s > 0.5 * b:
             bad("side", f"must exceed `base / 2` = {0.5 * b} for a triangle; got {s}.")
+        if self.initial_xy is not None:
+            if self.initial_xy.shape != (3, 2):
+                bad("initial_xy", f"must have shape (3, 2) (C1, C2, C3); got shape "
+                    f"{self.initial_xy.shape}.")  # fmt: skip
+            v = _concrete(self.initial_xy)
+            if v is not None:
+                if not np.all(np.isfinite(v)):
+                    bad("initial_xy", f"must be finite; got {v.tolist()}.")
+                u, w = v[1] - v[0], v[2] - v[0]
+                if abs(u[0] * w[1] - u[1] * w[0]) <= 1e-9:
+                    bad("initial_xy", f"must be a triangle (three non-collinear points); "
+                        f"got {v.tolist()}.")  # fmt: skip
+        if self.moves is not None:
+            want = (num_moves(self.strategy), 2)
+            if self.moves.shape != want:
+                bad("moves", f"must have shape {want} (length, direction) for the "
+                    f"{self.strategy} strategy; got shape {self.moves.shape}.")  # fmt: skip
+            v = _concrete(self.moves)
+            if v is not None:
+                if not np.all(np.isfinite(v)):
+                    bad("moves", f"must be finite; got {v.tolist()}.")
+                if not np.all(v[:, 0] > 0):
+                    bad("moves", f"lengths (column 0) must be positive; got {v.tolist()}.")
         _check_surface("ground", self.ground)
         _check_surface("ceiling", self.ceiling)
 
@@ -288,8 +335,16 @@ class Scenario(eqx.Module):
         return cls(strategy=strategy, **overrides)
 
     def formation_xy(self) -> Float[Array, "3 2"]:
-        """Initial `(x, y)` of C1, C2, C3 in `E` (m), shape `(3, 2)`."""
+        """Initial `(x, y)` of C1, C2, C3 in `E` (m), shape `(3, 2)`: `initial_xy` if
+        given, else the isosceles triangle [`jaxloc.formation_xy`][]`(base, side)`."""
+        if self.initial_xy is not None:
+            return self.initial_xy
         return formation_xy(self.base, self.side)
+
+    @property
+    def fixed_moves(self) -> bool:
+        """Whether the moves are fixed (`moves` given) rather than random."""
+        return self.moves is not None
 
 
 def _check_surface(path: str, surface: AbstractSurface) -> None:
@@ -341,11 +396,16 @@ _FLOAT_KEYS = {
     "move_mean": (), "move_std": (), "min_separation": (), "pixel_sigma": (),
     "odometry_sigma_rel": (),
 }  # fmt: skip
+#: Optional array keys: absent or `null` means `None`. Written only when set, so that the
+#: file (and a study's manifest) of a scenario without them is what it was before they
+#: existed.
+_OPTIONAL_KEYS = {"initial_xy": 3, "moves": None}  # key -> required row count (None: any)
 _STR_KEYS = {"strategy": STRATEGIES, "noise_model": NOISE_MODELS}
 _BOOL_KEYS = ("require_overhead", "require_ptz", "require_omni")
 _TOP_KEYS = (
     ("ground", "ceiling", "cameras", "move_candidates")
     + tuple(_FLOAT_KEYS)
+    + tuple(_OPTIONAL_KEYS)
     + tuple(_STR_KEYS)
     + _BOOL_KEYS
 )
@@ -369,6 +429,28 @@ def _parse_float(path: str, x: Any, shape: tuple[int, ...]) -> Any:
     if not all(math.isfinite(v) for v in x):
         raise ValueError(f"Scenario field `{path}` must be finite; got {x!r}.")
     return [float(v) for v in x]
+
+
+def _parse_rows(path: str, x: Any, rows: int | None) -> Any:
+    """A `null` or a list of `rows` (any number if `None`) pairs of finite numbers."""
+    if x is None:
+        return None
+    count = "" if rows is None else f"{rows} "
+    if (
+        not isinstance(x, list | tuple)
+        or (rows is not None and len(x) != rows)
+        or not x
+        or not all(
+            isinstance(r, list | tuple) and len(r) == 2 and all(map(_is_number, r)) for r in x
+        )
+    ):
+        raise ValueError(
+            f"Scenario field `{path}` must be null or a list of {count}pairs of numbers; "
+            f"got {x!r}."
+        )
+    if not all(math.isfinite(v) for r in x for v in r):
+        raise ValueError(f"Scenario field `{path}` must be finite; got {x!r}.")
+    return [[float(v) for v in r] for r in x]
 
 
 def _check_keys(path: str, d: Any, allowed) -> None:
@@ -506,8 +588,12 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
     d["ceiling"] = _surface_to_dict("ceiling", scenario.ceiling)
     for k in _FLOAT_KEYS:
         d[k] = _to_builtin(getattr(scenario, k))
+        if k == "side" and scenario.initial_xy is not None:
+            d["initial_xy"] = _to_builtin(scenario.initial_xy)
         if k == "overhead_heading":
             d["cameras"] = {s: _camera_to_dict(getattr(scenario, s)) for s in _CAMERA_SLOTS}
+        if k == "move_std" and scenario.moves is not None:
+            d["moves"] = _to_builtin(scenario.moves)
     d["move_candidates"] = int(scenario.move_candidates)
     d["noise_model"] = scenario.noise_model
     for k in _BOOL_KEYS:
@@ -531,6 +617,9 @@ def scenario_from_dict(d: Any) -> Scenario:
     for k, shape in _FLOAT_KEYS.items():
         if k in d:
             kwargs[k] = _parse_float(k, d[k], shape)
+    for k, rows in _OPTIONAL_KEYS.items():
+        if k in d:
+            kwargs[k] = _parse_rows(k, d[k], rows)
     for k, allowed in _STR_KEYS.items():
         if k in d:
             if d[k] not in allowed:

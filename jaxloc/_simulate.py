@@ -32,7 +32,7 @@ from ._observations import (
 )
 from ._presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
 from ._scenario import Scenario
-from ._world import body_frame_on_surface, formation_xy
+from ._world import body_frame_on_surface
 
 
 MIN_MOVE_LENGTH = 0.05
@@ -175,8 +175,9 @@ def simulate_cycle(
 ) -> tuple[CycleTruth, CycleObservations, Bool[Array, ""]]:
     r"""Simulate one localization cycle of `scenario`.
 
-    1. **Placement.** Ground robots at [`jaxloc.formation_xy`][]`(base, side)` on
-       `scenario.ground` with `scenario.headings`; the climbing robot at `overhead_xy`
+    1. **Placement.** Ground robots at `scenario.formation_xy()` (`initial_xy` if
+       given, else [`jaxloc.formation_xy`][]`(base, side)`) on `scenario.ground` with
+       `scenario.headings`; the climbing robot at `overhead_xy`
        on `scenario.ceiling` with `overhead_heading`; the overhead camera's optical
        frame is its body pose composed with `R_BODY_OVERHEAD`. Every pose via
        [`jaxloc.body_pose_on_surface`][].
@@ -193,7 +194,9 @@ def simulate_cycle(
        PTZ sees C2 and C3; each omni camera sees the two others within its elevation
        band) and for `min_separation`, and the first feasible candidate is taken. If
        none is feasible (or the initial formation is not), the first candidate is kept
-       and the returned flag is `False`.
+       and the returned flag is `False`. **Fixed moves** (`scenario.moves` given): move
+       `m` has exactly length `moves[m, 0]` and direction `moves[m, 1]` (no clipping, no
+       resampling); if a step's formation breaks a requirement the flag is `False`.
     3. **Observations** through the cameras: the target robot's position (its marker
        = its camera centre) in the observer's camera frame (PTZ base frame
        `R_BODY_PTZ^T p_body`, omni frame = body frame, overhead optical frame),
@@ -236,7 +239,7 @@ def simulate_cycle(
         scenario.overhead_heading.astype(dtype),
     )
     R_over = R_climber @ _mat(R_BODY_OVERHEAD, dtype)  # camera and body share the centre
-    xy0 = formation_xy(scenario.base, scenario.side).astype(dtype)
+    xy0 = scenario.formation_xy().astype(dtype)
 
     # 2. Moves. Which robots move at each step, (steps - 1, 3): one (sequential) or two
     # (concurrent).
@@ -244,16 +247,29 @@ def simulate_cycle(
     mover_mask[starts, movers] = True
     mean = scenario.move_mean.astype(dtype)
     std = scenario.move_std.astype(dtype)
+    fixed = scenario.moves is not None  # static: the pytree structure decides
+    if fixed:
+        # (length, direction) of each robot at each step (zeros for robots that stay).
+        fixed_moves = jnp.zeros((steps - 1, 3, 2), dtype).at[starts, movers].set(
+            scenario.moves.astype(dtype)
+        )
+    else:
+        fixed_moves = None  # no scan input: the random path's program is unchanged
 
     def one_step(carry, inputs):
         xy, feasible = carry
-        step_key, movers_now, first = inputs
+        step_key, movers_now, first, fixed_now = inputs
         R, _ = _robot_frames(scenario, xy)  # (3, 3, 3)
-        k_len, k_dir = jr.split(step_key)
-        # Candidates are drawn for all three robots (cheap) and kept for the movers only,
-        # so that one scan body serves every step of both strategies.
-        length = jnp.maximum(mean + std * jr.normal(k_len, (K, 3), dtype), MIN_MOVE_LENGTH)
-        phi = jr.uniform(k_dir, (K, 3), dtype, -math.pi, math.pi)
+        if fixed:
+            # The given moves, exactly: one candidate, never resampled (an infeasible one
+            # makes the cycle infeasible).
+            length, phi = fixed_now[None, :, 0], fixed_now[None, :, 1]  # (1, 3)
+        else:
+            k_len, k_dir = jr.split(step_key)
+            # Candidates are drawn for all three robots (cheap) and kept for the movers
+            # only, so that one scan body serves every step of both strategies.
+            length = jnp.maximum(mean + std * jr.normal(k_len, (K, 3), dtype), MIN_MOVE_LENGTH)
+            phi = jr.uniform(k_dir, (K, 3), dtype, -math.pi, math.pi)
         d = jnp.cos(phi)[..., None] * R[None, :, :, 0] + jnp.sin(phi)[..., None] * R[None, :, :, 1]
         new = xy[None] + length[..., None] * d[..., :2]  # (K, 3, 2)
         cands = jnp.where(movers_now[None, :, None], new, xy[None])
@@ -262,7 +278,7 @@ def simulate_cycle(
         mask, over, mutual = _formations_ok(
             scenario, jnp.concatenate([xy[None], cands]), R_over, t_over
         )
-        best = jnp.argmax(mask[1:])
+        best = 0 if fixed else jnp.argmax(mask[1:])
         xy = cands[best]
         feasible = feasible & mask[1 + best] & (mask[0] | ~first)
         # Sightings of the current and of the chosen formation, reused for the pixels.
@@ -273,7 +289,12 @@ def simulate_cycle(
     (_, feasible), (xy_moved, vis) = jax.lax.scan(
         one_step,
         (xy0, jnp.array(True)),
-        (jr.split(k_moves, steps - 1), jnp.asarray(mover_mask), jnp.asarray(first)),
+        (
+            jr.split(k_moves, steps - 1),
+            jnp.asarray(mover_mask),
+            jnp.asarray(first),
+            fixed_moves,
+        ),
     )
     xy_all = jnp.concatenate([xy0[None], xy_moved])  # (steps, 3, 2)
     R_b, p_b = _robot_frames(scenario, xy_all)  # (steps, 3, 3, 3), (steps, 3, 3)

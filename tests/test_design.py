@@ -48,8 +48,6 @@ def test_formation_round_trips_through_a_scenario_file(tmp_path):
     for name in ("base", "side", "headings", "overhead_xy", "overhead_heading", "pan", "tilt",
                  "zoom", "move_mean"):
         np.testing.assert_array_equal(getattr(back, name), getattr(f, name))
-    with pytest.raises(ValueError, match="fixed `moves`"):
-        FIXED.to_scenario(SEQ)
     with pytest.raises(ValueError, match="zoom"):
         Formation(zoom=1.5).to_scenario(SEQ)
 
