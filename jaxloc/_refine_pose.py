@@ -13,17 +13,21 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import optimistix as optx
+from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from ._camera import AbstractCamera
 from ._misc import safe_sqrt
-from ._normal_equations import _make_solver, SOLVERS
+from ._normal_equations import _make_solver
 from ._overhead import _cholesky_solve6
 from ._results import raise_if_failed, RESULTS
 from ._solvers.dlt import identity_like, PoseSolution, where_pose
 
 
 LOSSES = (None, "huber", "cauchy")
+#: Solvers of [`jaxloc.refine_overhead_pose`][]: jaxloc's batched Levenberg--Marquardt /
+#: Gauss--Newton with the chain-rule Jacobian, or optimistix's on the same residuals.
+POSE_SOLVERS = ("lm", "gn", "optx-lm", "optx-gn")
 #: Default `loss_scale` of each robust loss, in units of `sigma` (95% asymptotic
 #: efficiency under Gaussian noise).
 DEFAULT_LOSS_SCALE = {"huber": 1.345, "cauchy": 2.3849}
@@ -79,47 +83,244 @@ def _inverse6(H: Float[Array, "6 6"]):
     return jnp.where(ok, inv, 0.0), ok
 
 
+def _camera_points(T_cam_world: jaxlie.SE3, X: Float[Array, "n 3"]):
+    """`(R, q)`: the rotation matrix and `q_i = R X_i + t`, written element-wise (a batched
+    `dot` of 3x3 matrices would be one tiny library call per problem under `vmap`)."""
+    R = T_cam_world.rotation().as_matrix()
+    q = jnp.sum(X[:, None, :] * R[None, :, :], axis=-1) + T_cam_world.translation()[None]
+    return R, q
+
+
+def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, loss):
+    r"""Robust whitened residuals `r` `(n, 2)` and their Jacobian `(n, 2, 6)` w.r.t. the
+    right perturbation `T exp(delta)`, `delta = (v, omega)`, at `delta = 0`.
+
+    Chain rule: $q = R(\exp(\delta) X) + t \approx R(X + v + \omega \times X) + t$, so
+    $\partial q / \partial v = R$ and $\partial q / \partial \omega_k = R (e_k \times X)$;
+    the camera's own `(2, 3)` projection Jacobian by forward mode (three tangents, one
+    point at a time: element-wise under `vmap`). The robust scaling `r = f(s) e`,
+    `s = |e|^2`, is differentiated exactly: `dr = (f I + 2 f'(s) e e^T) de`, so the
+    solver minimises $\sum \rho$ with its true gradient.
+    """
+    R, q = _camera_points(T_cam_world, X)
+    pred = camera.project(q)
+    Jp = jax.vmap(jax.jacfwd(camera.project))(q)  # (n, 2, 3)
+    e = weight[:, None] * (pred - uv)
+    A = weight[:, None, None] * jnp.sum(Jp[:, :, :, None] * R[None, None, :, :], axis=2)
+    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+    zero = jnp.zeros_like(x0)
+    # Columns e_k x X of d(omega x X)/d omega.
+    cross = jnp.stack(
+        [jnp.stack([zero, -x2, x1], -1), jnp.stack([x2, zero, -x0], -1),
+         jnp.stack([-x1, x0, zero], -1)],
+        axis=-1,
+    )  # (n, 3, 3): [i, j, k] = (e_k x X_i)_j
+    Jw = jnp.sum(A[:, :, :, None] * cross[:, None, :, :], axis=2)
+    Je = jnp.concatenate([A, Jw], axis=-1)  # (n, 2, 6)
+    if loss is None:
+        return e, Je
+    s = jnp.sum(e * e, axis=-1)
+    f, df = jax.jvp(lambda s: _robust_factor(s, loss, c), (s,), (jnp.ones_like(s),))
+    eJ = jnp.sum(e[:, :, None] * Je, axis=1)  # e^T Je, (n, 6)
+    J = f[:, None, None] * Je + (2.0 * df)[:, None, None] * e[:, :, None] * eJ[:, None, :]
+    return f[:, None] * e, J
+
+
+def _normal_equations(r, J):
+    """`(J^T J, J^T r)` as element-wise products and sums (no `dot`)."""
+    Jf = J.reshape(-1, 6)
+    rf = r.reshape(-1)
+    H = jnp.sum(Jf[:, :, None] * Jf[:, None, :], axis=0)
+    g = jnp.sum(Jf * rf[:, None], axis=0)
+    return H, g
+
+
+def _rplus(T: jaxlie.SE3, delta, dtype) -> jaxlie.SE3:
+    # jaxlie's exp returns float64 under x64 even for float32 input: cast back.
+    return jaxlie.SE3(jaxlie.manifold.rplus(T, delta).wxyz_xyz.astype(dtype))
+
+
+def _batched_lm(T0, camera, X, uv, weight, c, loss, damped, max_steps, rtol, atol, active):
+    """Levenberg--Marquardt (or, `damped=False`, Gauss--Newton) on the pose, re-linearized
+    at the current pose every step.
+
+    One model evaluation with its chain-rule Jacobian per iteration, the 6x6 normal
+    equations as element-wise sums, an unrolled Cholesky (`_cholesky_solve6`): no LAPACK,
+    no linear operator, no `dot` (DESIGN §8). Isotropic damping `lambda I` on the whitened
+    problem (`lambda` is a prior precision on `(v, omega)`, m^-2 and rad^-2), from 1e-3,
+    divided by 10 after an accepted step, multiplied by 10 after a rejected one;
+    Gauss--Newton takes every finite step. Converged when a step (accepted, or rejected at
+    negligible damping: the minimum within rounding) is below
+    `atol + rtol * |t|_inf` (m, rad). An inactive problem takes no step (under `vmap` it
+    does not prolong its batch's loop). Returns `(T, num_steps, converged)`.
+    """
+    dtype = X.dtype
+
+    def model(T):
+        r, J = _residuals_and_jacobian(T, camera, X, uv, weight, c, loss)
+        return r, J
+
+    r0, J0 = model(T0)
+    lam0 = jnp.array(1e-3 if damped else 0.0, dtype)
+    init = (jnp.array(0, jnp.int32), T0.wxyz_xyz, r0, J0, lam0, ~active, jnp.array(False))
+
+    def cond(state):
+        k, *_, done, _ = state
+        return (k < max_steps) & ~done
+
+    def body(state):
+        k, params, r, J, lam, _, _ = state
+        T = jaxlie.SE3(params)
+        H, g = _normal_equations(r, J)
+        H = H + lam * jnp.eye(6, dtype=dtype)
+        delta, ok = _cholesky_solve6(H, -g)
+        finite = ok & jnp.all(jnp.isfinite(delta))
+        delta = jnp.where(finite, delta, 0.0)
+        T_new = _rplus(T, delta, dtype)
+        r_new, J_new = model(T_new)
+        cost, cost_new = jnp.sum(r * r), jnp.sum(r_new * r_new)
+        if damped:
+            accept = finite & jnp.isfinite(cost_new) & (cost_new <= cost)
+        else:
+            accept = finite & jnp.isfinite(cost_new)
+        small = jnp.max(jnp.abs(delta)) <= atol + rtol * jnp.max(jnp.abs(params[4:]))
+        done = (accept | (lam < 1e-2)) & finite & small
+        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
+        if damped:
+            lam = jnp.where(
+                accept, jnp.maximum(lam / 10.0, 1e-9), jnp.minimum(lam * 10.0, 1e12)
+            )
+        return (
+            k + 1, pick(T_new.wxyz_xyz, params), pick(r_new, r), pick(J_new, J), lam,
+            done, done,
+        )
+
+    k, params, r, J, _, _, converged = jax.lax.while_loop(cond, body, init)
+    # One more Gauss--Newton step from the Jacobian already at hand (no model evaluation):
+    # the loop stops after a step below tolerance, this takes the remaining error from
+    # ~rate * tolerance to rounding level at the cost of one 6x6 solve.
+    H, g = _normal_equations(r, J)
+    delta, ok = _cholesky_solve6(H, -g)
+    ok = ok & converged & jnp.all(jnp.isfinite(delta))
+    T = jaxlie.SE3(params)
+    return where_pose(ok, _rplus(T, jnp.where(ok, delta, 0.0), dtype), T), k, converged
+
+
+def _zero_step(params):
+    # Derived from an input so that under `vmap` it is batched like its tangent.
+    return jnp.zeros(6, params.dtype) + 0.0 * params[0]
+
+
+@ft.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _implicit_step(loss, camera_static, params, camera_dyn, X, uv, weight, c):
+    """Zero tangent step at a converged pose `params` whose derivative is that of the
+    minimizer w.r.t. the measurements, the camera and the weights (implicit function
+    theorem on the gradient of the cost). `rplus(T, step)` is the solution with correct
+    derivatives; it does not depend on the starting pose."""
+    return _zero_step(params)
+
+
+@ft.partial(_implicit_step.defjvp, symbolic_zeros=True)
+def _implicit_step_jvp(loss, camera_static, primals, tangents):
+    params, *rest = primals
+    _, *rest_dot = tangents
+    zero = _zero_step(params)
+    T = jaxlie.SE3(params)
+
+    def gradient(delta, camera_dyn, X, uv, weight, c):
+        camera = eqx.combine(camera_dyn, camera_static)
+
+        def cost(d):
+            r = _pose_residuals(d, (T, camera, X, uv, weight, c), loss=loss)
+            return 0.5 * jnp.sum(r * r)
+
+        return jax.grad(cost)(delta)
+
+    H = jax.jacfwd(gradient)(zero, *rest)
+    H_inv, _ = _inverse6(0.5 * (H + H.T))
+    g_dot = _jvp_nonzero(lambda rest: gradient(zero, *rest), rest, rest_dot)
+    return zero, jnp.zeros_like(zero) if g_dot is None else -H_inv @ g_dot
+
+
+def _jvp_nonzero(f, primals, tangents):
+    """`jax.jvp(f, primals, tangents)[1]` over the pytree `primals`, differentiating only
+    the leaves whose tangent is not a `SymbolicZero`; `None` if every tangent is zero."""
+    leaves, tree = jax.tree.flatten(primals)
+    dots = tree.flatten_up_to(tangents)
+    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
+    if not live:
+        return None
+
+    def of_live(*values):
+        full = list(leaves)
+        for i, v in zip(live, values):
+            full[i] = v
+        return f(tree.unflatten(full))
+
+    return jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])[1]
+
+
 @eqx.filter_jit
 def _refine_pose_impl(
     T0, camera, X, uv, mask, sigma, loss_scale, *, solver, loss, max_steps, rtol, atol
 ):
     dtype = X.dtype
     finite = jnp.all(jnp.isfinite(X), axis=1) & jnp.all(jnp.isfinite(uv), axis=1)
-    nonfinite = jnp.any(mask & ~finite) | ~jnp.all(jnp.isfinite(T0.wxyz_xyz))
+    start_ok = jnp.all(jnp.isfinite(T0.wxyz_xyz))
+    nonfinite = jnp.any(mask & ~finite) | ~start_ok
     use = mask & finite
     count = jnp.sum(use)
     X = jnp.where(use[:, None], X, 0.0)
     uv = jnp.where(use[:, None], uv, 0.0)
     sigma = jnp.asarray(sigma, dtype)
     weight = jnp.where(use, 1.0 / sigma, 0.0).astype(dtype)
-    T0 = where_pose(jnp.all(jnp.isfinite(T0.wxyz_xyz)), T0, identity_like(dtype))
-    # Masked points sit at the world origin with zero weight: they contribute nothing.
-    # Keep them in front of the camera anyway so that `project` stays smooth there.
+    T0 = where_pose(start_ok, T0, identity_like(dtype))
+    T0 = jaxlie.SE3(T0.wxyz_xyz.astype(dtype))
+    # Masked points sit in front of the camera with zero weight: they contribute nothing,
+    # and `project` stays smooth there.
     ahead = T0.inverse() @ jnp.array([0.0, 0.0, 1.0], dtype)
     X = jnp.where(use[:, None], X, ahead)
     c = jnp.asarray(loss_scale, dtype)
-    fn = ft.partial(_pose_residuals, loss=loss)
-    sol = optx.least_squares(
-        fn,
-        _make_solver(solver, rtol, atol),
-        jnp.zeros(6, dtype),
-        args=(T0, camera, X, uv, weight, c),
-        max_steps=max_steps,
-        throw=False,
-    )
-    pose = jaxlie.manifold.rplus(T0, sol.value)
-    pose = jaxlie.SE3(pose.wxyz_xyz.astype(dtype))
+    if solver in ("lm", "gn"):
+        # The loop is not differentiated: `_implicit_step` carries the derivatives.
+        lm_args = jax.tree.map(jax.lax.stop_gradient, (T0, camera, X, uv, weight, c))
+        pose, num_steps, converged = _batched_lm(
+            *lm_args, loss, solver == "lm", max_steps, rtol, atol,
+            (count >= 3) & ~nonfinite,
+        )
+        camera_dyn, camera_static = eqx.partition(camera, eqx.is_inexact_array)
+        step = _implicit_step(
+            loss, camera_static, pose.wxyz_xyz, camera_dyn, X, uv, weight, c
+        )
+        pose = _rplus(pose, step, dtype)
+        result = RESULTS.where(
+            converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached
+        )
+    else:
+        fn = ft.partial(_pose_residuals, loss=loss)
+        sol = optx.least_squares(
+            fn,
+            _make_solver(solver.removeprefix("optx-"), rtol, atol),
+            jnp.zeros(6, dtype),
+            args=(T0, camera, X, uv, weight, c),
+            max_steps=max_steps,
+            throw=False,
+        )
+        pose = _rplus(T0, sol.value, dtype)
+        num_steps = sol.stats["num_steps"]
+        result = RESULTS.promote(sol.result)
     # First-order covariance at the solution (Gaussian model, no robust weights):
-    # cov(delta) = (J^T J)^-1 with J the Jacobian of the sigma-whitened residuals, delta the
-    # tangent of T_cam_world around the refined pose.
-    plain = ft.partial(_pose_residuals, loss=None)
-    J = jax.jacfwd(plain)(jnp.zeros(6, dtype), (pose, camera, X, uv, weight, c))
-    cov, cov_ok = _inverse6(J.T @ J)
+    # cov(delta) = (J^T J)^-1 with J the chain-rule Jacobian of the sigma-whitened
+    # residuals, delta the tangent of T_cam_world around the refined pose.
+    stop = jax.lax.stop_gradient
+    _, J = _residuals_and_jacobian(
+        stop(pose), stop(camera), stop(X), stop(uv), stop(weight), c, None
+    )
+    cov, cov_ok = _inverse6(_normal_equations(jnp.zeros(J.shape[:2], dtype), J)[0])
     e = _point_residuals(pose, camera, X, uv, use.astype(dtype))
     sq = jnp.sum(e * e) / jnp.maximum(count, 1).astype(dtype)
-    result = RESULTS.promote(sol.result)
     result = RESULTS.where(cov_ok, result, RESULTS.degenerate_configuration)
-    in_front = jnp.all(camera.projectable(jax.vmap(pose.apply)(X)) | ~use)
+    in_front = jnp.all(camera.projectable(_camera_points(pose, X)[1]) | ~use)
     result = RESULTS.where(
         jnp.all(jnp.isfinite(pose.wxyz_xyz)) & in_front, result, RESULTS.no_valid_solution
     )
@@ -128,7 +329,7 @@ def _refine_pose_impl(
     success = result == RESULTS.successful
     pose = where_pose(success, pose, identity_like(dtype))
     stats = {
-        "num_steps": sol.stats["num_steps"],
+        "num_steps": num_steps,
         "rms_pixel_error": safe_sqrt(sq),
         "covariance": jnp.where(success, cov, 0.0),
     }
@@ -215,8 +416,10 @@ def refine_overhead_pose(
     mask = jnp.asarray(mask)
     if mask.shape != (n,):
         raise ValueError(f"`mask` must have shape ({n},); got shape {mask.shape}.")
-    if solver not in SOLVERS:
-        raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')
+    if solver not in POSE_SOLVERS:
+        raise ValueError(
+            f'`solver` must be "lm", "gn", "optx-lm" or "optx-gn"; got {solver!r}.'
+        )
     if loss not in LOSSES:
         raise ValueError(f'`loss` must be None, "huber" or "cauchy"; got {loss!r}.')
     if not isinstance(max_steps, int) or max_steps < 1:
