@@ -16,6 +16,12 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._normal_equations import (
+    _cholesky_solve6 as _cholesky_solve6,  # its old home; now in _normal_equations
+    _implicit_pose_step,
+    _pose_lm,
+    _rplus,
+)
 from ._results import raise_if_failed, RESULTS
 from ._solvers.dlt import (
     angular_errors,
@@ -30,7 +36,9 @@ from ._solvers.dlt import (
 from ._solvers.p3p import p3p
 
 
-_POLISH_STEPS = 5
+#: Triplets solved by P3P (the best-conditioned ones), and the polish's iteration limit.
+_NUM_TRIPLETS = 4
+_POLISH_STEPS = 10
 
 
 def _normalize_rows(v: Float[Array, "n 3"]) -> Float[Array, "n 3"]:
@@ -47,54 +55,83 @@ def _chordal_residuals(
     return (w[:, None] * (_normalize_rows(q) - b)).reshape(-1)
 
 
-def _cholesky_solve6(H: Float[Array, "6 6"], g: Float[Array, "6"]):
-    """Solve `H x = g` for SPD `H` with an unrolled Cholesky (no LAPACK). Returns (x, ok)."""
-    n = 6
-    L = [[None] * n for _ in range(n)]
-    ok = jnp.array(True)
-    tiny = jnp.finfo(H.dtype).tiny
-    for j in range(n):
-        s = H[j, j] - sum((L[j][k] * L[j][k] for k in range(j)), start=0.0)
-        ok = ok & (s > tiny)
-        d = jnp.sqrt(jnp.where(s > tiny, s, 1.0))
-        L[j][j] = d
-        for i in range(j + 1, n):
-            L[i][j] = (H[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=0.0)) / d
-    y = [None] * n
-    for i in range(n):
-        y[i] = (g[i] - sum((L[i][k] * y[k] for k in range(i)), start=0.0)) / L[i][i]
-    x = [None] * n
-    for i in reversed(range(n)):
-        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), start=0.0)) / L[i][i]
-    return jnp.stack(x), ok
+def _chordal_model(T: jaxlie.SE3, X, b, w):
+    r"""Chordal residuals `(3n,)` and their Jacobian `(3n, 6)` w.r.t. the right
+    perturbation `T exp(delta)` at `delta = 0`, by the chain rule, element-wise:
+    `q = R X + t`, `d(q/|q|)/dq = (I - n n^T) / |q|`, `dq/dv = R`,
+    `dq/d omega_k = R (e_k x X)`."""
+    R = T.rotation().as_matrix()
+    q = jnp.sum(X[:, None, :] * R[None, :, :], axis=-1) + T.translation()[None]
+    n2 = jnp.sum(q * q, axis=-1)
+    ok = n2 > 0
+    inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
+    u = q * inv[:, None]
+    r = w[:, None] * (u - b)
+    eye = jnp.eye(3, dtype=X.dtype)
+    D = (w * inv)[:, None, None] * (eye[None] - u[:, :, None] * u[:, None, :])
+    A = jnp.sum(D[:, :, :, None] * R[None, None, :, :], axis=2)  # d r / d v, (n, 3, 3)
+    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+    zero = jnp.zeros_like(x0)
+    cross = jnp.stack(
+        [jnp.stack([zero, -x2, x1], -1), jnp.stack([x2, zero, -x0], -1),
+         jnp.stack([-x1, x0, zero], -1)],
+        axis=-1,
+    )  # [i, j, k] = (e_k x X_i)_j
+    Jw = jnp.sum(A[:, :, :, None] * cross[:, None, :, :], axis=2)
+    return r.reshape(-1), jnp.concatenate([A, Jw], axis=-1).reshape(-1, 6)
+
+
+def _chordal_implicit(T, args, static):
+    del static
+    X, b, w = args
+    return _chordal_residuals(T, X, b, w)
 
 
 def _polish(pose: jaxlie.SE3, X, b, w, steps: int) -> jaxlie.SE3:
-    """A few Gauss--Newton steps on the chordal bearing error (each step kept only if it
-    lowers the cost). Lightly damped; unrolled, so `grad` differentiates through it."""
+    """Minimise the chordal bearing error from `pose`: jaxloc's Levenberg--Marquardt with
+    the chain-rule Jacobian (at most `steps` iterations), not differentiated; derivatives
+    of the minimizer w.r.t. `X` and `b` by the implicit function theorem."""
     dtype = X.dtype
+    tol = max(1e-8, 100.0 * float(jnp.finfo(dtype).eps))
+    stop = jax.lax.stop_gradient
+    Xs, bs, ws = stop(X), stop(b), stop(w)
+    # Residuals are in rad (~1e-3 at 2 px): start with a damping well below J^T J.
+    pose, _, _ = _pose_lm(
+        lambda T: _chordal_model(T, Xs, bs, ws),
+        jaxlie.SE3(stop(pose.wxyz_xyz)),
+        damped=True,
+        max_steps=steps,
+        rtol=tol,
+        atol=tol,
+        active=jnp.array(True),
+        lam0=1e-9,
+    )
+    step = _implicit_pose_step(_chordal_implicit, None, pose.wxyz_xyz, (X, b, w))
+    return _rplus(pose, step, dtype)
 
-    def step(_, params):
-        pose = jaxlie.SE3(wxyz_xyz=params)
 
-        def res(delta):
-            return _chordal_residuals(jaxlie.manifold.rplus(pose, delta), X, b, w)
-
-        zero = jnp.zeros(6, dtype=dtype)
-        r = res(zero)
-        J = jax.jacfwd(res)(zero)
-        H = J.T @ J
-        H = H + 1e-9 * jnp.diag(jnp.diag(H)) + jnp.finfo(dtype).eps * jnp.eye(6, dtype=dtype)
-        delta, ok = _cholesky_solve6(H, -(J.T @ r))
-        delta = jnp.where(ok & jnp.all(jnp.isfinite(delta)), delta, 0.0)
-        # jaxlie's exp returns float64 under x64 even for float32 input: cast back.
-        new = jaxlie.SE3(wxyz_xyz=jaxlie.manifold.rplus(pose, delta).wxyz_xyz.astype(dtype))
-        r_new = _chordal_residuals(new, X, b, w)
-        better = jnp.sum(r_new * r_new) < jnp.sum(r * r)
-        return jnp.where(better, new.wxyz_xyz, params)
-
-    pose = jaxlie.SE3(wxyz_xyz=jax.lax.fori_loop(0, steps, step, pose.wxyz_xyz))
-    return pose
+def _select_triplets(Xt, bt, tri_ok, k: int):
+    """One-hot weights `(k, T)` of the `k` best-conditioned usable triplets: largest
+    product of the bearing triangle's squared area and the world triangle's squared
+    relative area (area over longest edge squared). Repeated arg-max, no sort."""
+    c = jnp.cross(bt[:, 1] - bt[:, 0], bt[:, 2] - bt[:, 0])
+    e1 = Xt[:, 1] - Xt[:, 0]
+    e2 = Xt[:, 2] - Xt[:, 0]
+    e3 = Xt[:, 2] - Xt[:, 1]
+    cw = jnp.cross(e1, e2)
+    longest = jnp.maximum(
+        jnp.maximum(jnp.sum(e1 * e1, axis=-1), jnp.sum(e2 * e2, axis=-1)),
+        jnp.sum(e3 * e3, axis=-1),
+    )
+    rel = jnp.sum(cw * cw, axis=-1) / jnp.where(longest > 0, longest, 1.0) ** 2
+    score = jnp.where(tri_ok, jnp.sum(c * c, axis=-1) * rel, -1.0)
+    idx = jnp.arange(score.shape[0])
+    hots = []
+    for _ in range(k):
+        hot = idx == jnp.argmax(score)
+        hots.append(hot)
+        score = jnp.where(hot, -jnp.inf, score)
+    return jnp.stack(hots)
 
 
 @jax.jit
@@ -112,7 +149,8 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
 
     # All C(n, 3) triplets, enumerated at trace time.
     tri = np.array(list(itertools.combinations(range(n), 3)), dtype=np.int32)
-    Xt, bt = X[tri], b[tri]
+    Xs, bs = jax.lax.stop_gradient(X), jax.lax.stop_gradient(b)
+    Xt, bt = Xs[tri], bs[tri]
     # Skip triplets with masked points or (nearly) collinear points: twice the area over
     # the longest squared edge (scale free, ~eps for exactly collinear points).
     e1 = Xt[:, 1] - Xt[:, 0]
@@ -127,28 +165,32 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
     thr = 1e-2 * jnp.sqrt(eps)
     noncollinear = area2 > (thr * longest) ** 2
     tri_ok = jnp.all(use[tri], axis=1) & noncollinear
-    # Candidate search without gradients; the chosen triplet is re-solved below so that
-    # `grad` only differentiates one P3P (a much smaller backward graph).
-    sols = jax.vmap(p3p)(jax.lax.stop_gradient(Xt), jax.lax.stop_gradient(bt))
+    # P3P on the best-conditioned triplets only (one-hot picks: no gather), without
+    # gradients: the polish below carries the derivatives (implicit function theorem).
+    k = min(_NUM_TRIPLETS, tri.shape[0])
+    hot = _select_triplets(Xt, bt, tri_ok, k).astype(dtype)
+    Xk = jnp.sum(hot[:, :, None, None] * Xt[None], axis=1)
+    bk = jnp.sum(hot[:, :, None, None] * bt[None], axis=1)
+    okk = jnp.sum(hot * tri_ok.astype(dtype)[None], axis=1) > 0
+    sols = jax.vmap(p3p)(Xk, bk)
     params = sols.poses.wxyz_xyz.reshape(-1, 7)
-    cand_ok = (sols.valid & tri_ok[:, None]).reshape(-1)
+    cand_ok = (sols.valid & okk[:, None]).reshape(-1)
 
     def score(p):
         T = jaxlie.SE3(wxyz_xyz=p)
-        q = jax.vmap(T.apply)(X)
-        chord2 = jnp.sum((_normalize_rows(q) - b) ** 2, axis=-1)
-        in_front = jnp.sum(q * b, axis=-1) > 0
+        R = T.rotation().as_matrix()
+        q = jnp.sum(Xs[:, None, :] * R[None, :, :], axis=-1) + T.translation()[None]
+        chord2 = jnp.sum((_normalize_rows(q) - bs) ** 2, axis=-1)
+        in_front = jnp.sum(q * bs, axis=-1) > 0
         return jnp.sum(w * chord2), jnp.all(in_front | ~use)
 
     costs, front_ok = jax.vmap(score)(params)
     good = cand_ok & front_ok & jnp.isfinite(costs)
     costs = jnp.where(good, costs, jnp.inf)
-    best = jnp.argmin(costs)
+    best = jnp.arange(costs.shape[0]) == jnp.argmin(costs)
     num_valid = jnp.sum(good).astype(jnp.int32)
-    best_tri = jnp.asarray(tri)[best // 4]
-    chosen = p3p(X[best_tri], b[best_tri])
-    pose = jaxlie.SE3(wxyz_xyz=chosen.poses.wxyz_xyz[best % 4])
-    pose = _polish(pose, X, b, w, _POLISH_STEPS)
+    start = jnp.sum(jnp.where(best[:, None], params, 0.0), axis=0)
+    pose = _polish(jaxlie.SE3(start), X, b, w, _POLISH_STEPS)
 
     planarity, collinearity = point_spread(X, use)
     count = jnp.sum(use)

@@ -13,13 +13,17 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import optimistix as optx
-from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from ._camera import AbstractCamera
 from ._misc import safe_sqrt
-from ._normal_equations import _make_solver
-from ._overhead import _cholesky_solve6
+from ._normal_equations import (
+    _implicit_pose_step,
+    _inverse6,
+    _make_solver,
+    _pose_lm,
+    _rplus,
+)
 from ._results import raise_if_failed, RESULTS
 from ._solvers.dlt import identity_like, PoseSolution, where_pose
 
@@ -73,16 +77,6 @@ def _pose_residuals(delta, args, *, loss):
     return (f[:, None] * e).reshape(-1)
 
 
-def _inverse6(H: Float[Array, "6 6"]):
-    """Inverse of an SPD 6x6 matrix by an unrolled Cholesky (no LAPACK); `(inv, ok)`."""
-    eye = jnp.eye(6, dtype=H.dtype)
-    cols, oks = jax.vmap(lambda e: _cholesky_solve6(H, e))(eye)
-    inv = cols.T
-    inv = 0.5 * (inv + inv.T)
-    ok = jnp.all(oks) & jnp.all(jnp.isfinite(inv))
-    return jnp.where(ok, inv, 0.0), ok
-
-
 def _camera_points(T_cam_world: jaxlie.SE3, X: Float[Array, "n 3"]):
     """`(R, q)`: the rotation matrix and `q_i = R X_i + t`, written element-wise (a batched
     `dot` of 3x3 matrices would be one tiny library call per problem under `vmap`)."""
@@ -126,138 +120,18 @@ def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, l
     return f[:, None] * e, J
 
 
-def _normal_equations(r, J):
-    """`(J^T J, J^T r)` as element-wise products and sums (no `dot`)."""
-    Jf = J.reshape(-1, 6)
-    rf = r.reshape(-1)
-    H = jnp.sum(Jf[:, :, None] * Jf[:, None, :], axis=0)
-    g = jnp.sum(Jf * rf[:, None], axis=0)
-    return H, g
+def _pose_model(T_cam_world, camera, X, uv, weight, c, loss):
+    r, J = _residuals_and_jacobian(T_cam_world, camera, X, uv, weight, c, loss)
+    return r.reshape(-1), J.reshape(-1, 6)
 
 
-def _rplus(T: jaxlie.SE3, delta, dtype) -> jaxlie.SE3:
-    # jaxlie's exp returns float64 under x64 even for float32 input: cast back.
-    return jaxlie.SE3(jaxlie.manifold.rplus(T, delta).wxyz_xyz.astype(dtype))
-
-
-def _batched_lm(T0, camera, X, uv, weight, c, loss, damped, max_steps, rtol, atol, active):
-    """Levenberg--Marquardt (or, `damped=False`, Gauss--Newton) on the pose, re-linearized
-    at the current pose every step.
-
-    One model evaluation with its chain-rule Jacobian per iteration, the 6x6 normal
-    equations as element-wise sums, an unrolled Cholesky (`_cholesky_solve6`): no LAPACK,
-    no linear operator, no `dot` (DESIGN §8). Isotropic damping `lambda I` on the whitened
-    problem (`lambda` is a prior precision on `(v, omega)`, m^-2 and rad^-2), from 1e-3,
-    divided by 10 after an accepted step, multiplied by 10 after a rejected one;
-    Gauss--Newton takes every finite step. Converged when a step (accepted, or rejected at
-    negligible damping: the minimum within rounding) is below
-    `atol + rtol * |t|_inf` (m, rad). An inactive problem takes no step (under `vmap` it
-    does not prolong its batch's loop). Returns `(T, num_steps, converged)`.
-    """
-    dtype = X.dtype
-
-    def model(T):
-        r, J = _residuals_and_jacobian(T, camera, X, uv, weight, c, loss)
-        return r, J
-
-    r0, J0 = model(T0)
-    lam0 = jnp.array(1e-3 if damped else 0.0, dtype)
-    init = (jnp.array(0, jnp.int32), T0.wxyz_xyz, r0, J0, lam0, ~active, jnp.array(False))
-
-    def cond(state):
-        k, *_, done, _ = state
-        return (k < max_steps) & ~done
-
-    def body(state):
-        k, params, r, J, lam, _, _ = state
-        T = jaxlie.SE3(params)
-        H, g = _normal_equations(r, J)
-        H = H + lam * jnp.eye(6, dtype=dtype)
-        delta, ok = _cholesky_solve6(H, -g)
-        finite = ok & jnp.all(jnp.isfinite(delta))
-        delta = jnp.where(finite, delta, 0.0)
-        T_new = _rplus(T, delta, dtype)
-        r_new, J_new = model(T_new)
-        cost, cost_new = jnp.sum(r * r), jnp.sum(r_new * r_new)
-        if damped:
-            accept = finite & jnp.isfinite(cost_new) & (cost_new <= cost)
-        else:
-            accept = finite & jnp.isfinite(cost_new)
-        small = jnp.max(jnp.abs(delta)) <= atol + rtol * jnp.max(jnp.abs(params[4:]))
-        done = (accept | (lam < 1e-2)) & finite & small
-        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
-        if damped:
-            lam = jnp.where(
-                accept, jnp.maximum(lam / 10.0, 1e-9), jnp.minimum(lam * 10.0, 1e12)
-            )
-        return (
-            k + 1, pick(T_new.wxyz_xyz, params), pick(r_new, r), pick(J_new, J), lam,
-            done, done,
-        )
-
-    k, params, r, J, _, _, converged = jax.lax.while_loop(cond, body, init)
-    # One more Gauss--Newton step from the Jacobian already at hand (no model evaluation):
-    # the loop stops after a step below tolerance, this takes the remaining error from
-    # ~rate * tolerance to rounding level at the cost of one 6x6 solve.
-    H, g = _normal_equations(r, J)
-    delta, ok = _cholesky_solve6(H, -g)
-    ok = ok & converged & jnp.all(jnp.isfinite(delta))
-    T = jaxlie.SE3(params)
-    return where_pose(ok, _rplus(T, jnp.where(ok, delta, 0.0), dtype), T), k, converged
-
-
-def _zero_step(params):
-    # Derived from an input so that under `vmap` it is batched like its tangent.
-    return jnp.zeros(6, params.dtype) + 0.0 * params[0]
-
-
-@ft.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _implicit_step(loss, camera_static, params, camera_dyn, X, uv, weight, c):
-    """Zero tangent step at a converged pose `params` whose derivative is that of the
-    minimizer w.r.t. the measurements, the camera and the weights (implicit function
-    theorem on the gradient of the cost). `rplus(T, step)` is the solution with correct
-    derivatives; it does not depend on the starting pose."""
-    return _zero_step(params)
-
-
-@ft.partial(_implicit_step.defjvp, symbolic_zeros=True)
-def _implicit_step_jvp(loss, camera_static, primals, tangents):
-    params, *rest = primals
-    _, *rest_dot = tangents
-    zero = _zero_step(params)
-    T = jaxlie.SE3(params)
-
-    def gradient(delta, camera_dyn, X, uv, weight, c):
-        camera = eqx.combine(camera_dyn, camera_static)
-
-        def cost(d):
-            r = _pose_residuals(d, (T, camera, X, uv, weight, c), loss=loss)
-            return 0.5 * jnp.sum(r * r)
-
-        return jax.grad(cost)(delta)
-
-    H = jax.jacfwd(gradient)(zero, *rest)
-    H_inv, _ = _inverse6(0.5 * (H + H.T))
-    g_dot = _jvp_nonzero(lambda rest: gradient(zero, *rest), rest, rest_dot)
-    return zero, jnp.zeros_like(zero) if g_dot is None else -H_inv @ g_dot
-
-
-def _jvp_nonzero(f, primals, tangents):
-    """`jax.jvp(f, primals, tangents)[1]` over the pytree `primals`, differentiating only
-    the leaves whose tangent is not a `SymbolicZero`; `None` if every tangent is zero."""
-    leaves, tree = jax.tree.flatten(primals)
-    dots = tree.flatten_up_to(tangents)
-    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
-    if not live:
-        return None
-
-    def of_live(*values):
-        full = list(leaves)
-        for i, v in zip(live, values):
-            full[i] = v
-        return f(tree.unflatten(full))
-
-    return jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])[1]
+def _implicit_residuals(T_cam_world, args, static):
+    loss, camera_static = static
+    camera_dyn, X, uv, weight, c = args
+    camera = eqx.combine(camera_dyn, camera_static)
+    e = _point_residuals(T_cam_world, camera, X, uv, weight)
+    f = _robust_factor(jnp.sum(e * e, axis=-1), loss, c)
+    return (f[:, None] * e).reshape(-1)
 
 
 @eqx.filter_jit
@@ -282,15 +156,23 @@ def _refine_pose_impl(
     X = jnp.where(use[:, None], X, ahead)
     c = jnp.asarray(loss_scale, dtype)
     if solver in ("lm", "gn"):
-        # The loop is not differentiated: `_implicit_step` carries the derivatives.
-        lm_args = jax.tree.map(jax.lax.stop_gradient, (T0, camera, X, uv, weight, c))
-        pose, num_steps, converged = _batched_lm(
-            *lm_args, loss, solver == "lm", max_steps, rtol, atol,
-            (count >= 3) & ~nonfinite,
+        # The loop is not differentiated: `_implicit_pose_step` carries the derivatives.
+        T0s, cam_s, Xs, uvs, ws, cs = jax.tree.map(
+            jax.lax.stop_gradient, (T0, camera, X, uv, weight, c)
+        )
+        pose, num_steps, converged = _pose_lm(
+            lambda T: _pose_model(T, cam_s, Xs, uvs, ws, cs, loss),
+            T0s,
+            damped=solver == "lm",
+            max_steps=max_steps,
+            rtol=rtol,
+            atol=atol,
+            active=(count >= 3) & ~nonfinite,
         )
         camera_dyn, camera_static = eqx.partition(camera, eqx.is_inexact_array)
-        step = _implicit_step(
-            loss, camera_static, pose.wxyz_xyz, camera_dyn, X, uv, weight, c
+        step = _implicit_pose_step(
+            _implicit_residuals, (loss, camera_static), pose.wxyz_xyz,
+            (camera_dyn, X, uv, weight, c),
         )
         pose = _rplus(pose, step, dtype)
         result = RESULTS.where(
@@ -312,11 +194,9 @@ def _refine_pose_impl(
     # First-order covariance at the solution (Gaussian model, no robust weights):
     # cov(delta) = (J^T J)^-1 with J the chain-rule Jacobian of the sigma-whitened
     # residuals, delta the tangent of T_cam_world around the refined pose.
-    stop = jax.lax.stop_gradient
-    _, J = _residuals_and_jacobian(
-        stop(pose), stop(camera), stop(X), stop(uv), stop(weight), c, None
-    )
-    cov, cov_ok = _inverse6(_normal_equations(jnp.zeros(J.shape[:2], dtype), J)[0])
+    _, J = _residuals_and_jacobian(pose, camera, X, uv, weight, c, None)
+    J = J.reshape(-1, 6)
+    cov, cov_ok = _inverse6(jnp.sum(J[:, :, None] * J[:, None, :], axis=0))
     e = _point_residuals(pose, camera, X, uv, use.astype(dtype))
     sq = jnp.sum(e * e) / jnp.maximum(count, 1).astype(dtype)
     result = RESULTS.where(cov_ok, result, RESULTS.degenerate_configuration)
