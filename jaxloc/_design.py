@@ -588,6 +588,18 @@ def objective_value(
 ) -> Float[Array, ""]:
     """The unpenalized objective of [`design_formation`][] at `formation` with the draws
     it would use for `key` (same split), e.g. to compare formations on common draws."""
-    fn = _objective_fn(objective, criterion, tuple(weights))
     k_draws, _ = jr.split(key)
-    return eqx.filter_jit(fn)(formation, scenario, jr.split(k_draws, num_draws))[0]
+    fn = _jitted_objective(objective, criterion, tuple(float(w) for w in weights))
+    return fn(formation, scenario, jr.split(k_draws, num_draws))[0]
+
+
+_JITTED: dict = {}
+
+
+def _jitted_objective(objective: str, criterion: str, weights: tuple):
+    # One jitted function per configuration, so that formations of one structure share a
+    # compilation across calls (a fresh `filter_jit` wrapper would recompile every time).
+    k = (objective, criterion, weights)
+    if k not in _JITTED:
+        _JITTED[k] = eqx.filter_jit(_objective_fn(objective, criterion, weights))
+    return _JITTED[k]

@@ -26,6 +26,7 @@ from jaxloc._formation import (
     place_fixed,
 )
 from jaxloc._scenario import load_scenario, save_scenario, Scenario
+from jaxloc._simulate import simulate_cycle
 
 
 SEQ = Scenario.paper("sequential")
@@ -50,6 +51,67 @@ def test_formation_round_trips_through_a_scenario_file(tmp_path):
         np.testing.assert_array_equal(getattr(back, name), getattr(f, name))
     with pytest.raises(ValueError, match="zoom"):
         Formation(zoom=1.5).to_scenario(SEQ)
+
+
+TRIANGLE = np.array([[-1.2, 0.05], [0.05, 1.05], [-0.05, -0.95]])
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+def test_fixed_moves_and_general_triangle_round_trip_through_a_file(tmp_path, suffix):
+    # Issue 8: a designed formation with fixed moves and a general triangle is written as a
+    # scenario file (Scenario.moves, Scenario.initial_xy) and read back unchanged.
+    moves = np.array([[0.7, 0.1], [0.9, -0.2], [0.6, 0.15]])
+    f = eqx.tree_at(lambda x: (x.moves, x.initial_xy), FIXED, (jnp.asarray(moves),
+                    jnp.asarray(TRIANGLE)), is_leaf=lambda x: x is None)  # fmt: skip
+    path = tmp_path / f"designed{suffix}"
+    save_scenario(f.to_scenario(SEQ), path)
+    loaded = load_scenario(path)
+    np.testing.assert_array_equal(loaded.moves, moves)
+    np.testing.assert_array_equal(loaded.formation_xy(), TRIANGLE)
+    back = Formation.from_scenario(loaded)
+    assert bool(eqx.tree_equal(back, f, typematch=True))
+    # `moves=None` asks for random moves whatever the scenario holds.
+    assert Formation.from_scenario(loaded, None).moves is None
+    with pytest.raises(ValueError, match=r"Scenario\(moves=...\)` lengths"):
+        eqx.tree_at(lambda x: x.moves, f, f.moves.at[1, 0].set(-0.2)).to_scenario(SEQ)
+
+
+def test_general_triangle_places_like_the_isosceles_one():
+    iso = jax.jit(place_fixed)(FIXED, SEQ)
+    xy = np.asarray(FIXED.triangle_xy())
+    gen = eqx.tree_at(lambda x: x.initial_xy, FIXED, jnp.asarray(xy), is_leaf=lambda x: x is None)
+    assert gen.general_triangle and not FIXED.general_triangle
+    assert bool(eqx.tree_equal(jax.jit(place_fixed)(gen, SEQ), iso))
+    # Free fields: the triangle's positions replace base and side.
+    spec = formation_filter(gen)
+    assert spec.initial_xy is True or bool(jnp.all(spec.initial_xy))
+    assert spec.base is False and spec.side is False and spec.move_mean is False
+    assert "triangle" not in jax.eval_shape(constraint_values, gen, SEQ, iso)
+    assert "triangle" in jax.eval_shape(constraint_values, FIXED, SEQ, iso)
+    with pytest.raises(ValueError, match="initial_xy"):
+        formation_filter(FIXED, ("initial_xy",))
+
+
+_simulate_single = eqx.filter_jit(simulate_cycle)
+
+
+def test_simulating_the_written_scenario_reproduces_the_design(tmp_path):
+    # What `jaxloc simulate --scenario FILE` runs: simulate_cycle of the loaded scenario puts
+    # the robots exactly where the design placed them (place_fixed, used by the objectives)
+    # in every trial. (simulate_formation, of the Monte Carlo objective, is that simulation.)
+    moves = np.array([[0.7, 0.1], [0.9, -0.2], [0.6, 0.15]])
+    f = Formation(headings=(0.02, -0.1, 0.1), overhead_xy=(0.1, -0.05), moves=moves,
+                  initial_xy=TRIANGLE)
+    path = tmp_path / "designed.yaml"
+    save_scenario(f.to_scenario(SEQ), path)
+    scenario = load_scenario(path)
+    pl = jax.jit(place_fixed)(f, SEQ)
+    for seed in (0, 1):
+        truth, _, ok = _simulate_single(scenario, jr.key(seed))
+        assert bool(ok)
+        np.testing.assert_allclose(truth.T_env_body.translation(), pl.p_body, atol=1e-13)
+        np.testing.assert_allclose(truth.T_env_overhead.translation(), pl.p_overhead,
+                                   atol=1e-13)
 
 
 def test_filter_freezes_the_other_fields():
@@ -138,7 +200,6 @@ def _parser():
     "argv, match",
     [
         (["design", "--free", "base,height"], "--free"),
-        (["design", "--moves", "fixed", "--out", "x.yaml"], "cannot be written"),
         (["design", "--weights", "1,0"], "--weights"),
         (["design", "--objective", "mc", "--criterion", "D"], "crlb only"),
         (["design", "--starts", "0"], "--starts"),

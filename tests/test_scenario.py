@@ -146,6 +146,20 @@ BAD = [
     ("cameras.overhead.image_size", [640], r"`cameras.overhead.image_size` must be two"),
     ("cameras.ptz.zoom", 1.5, r"`cameras.ptz` is invalid: .*zoom.*1.5"),
     ("cameras.omni3", 3, r"`cameras.omni3` must be a preset name or a mapping; got 3"),
+    ("moves", [[0.8, 0.0], [0.8, 0.0]], r"`Scenario\(moves=...\)` must have shape \(3, 2\) "
+     r".*sequential strategy; got shape \(2, 2\)"),
+    ("moves", [[0.8, 0.0], [-0.5, 0.1], [0.8, 0.0]], r"`Scenario\(moves=...\)` lengths "
+     r"\(column 0\) must be positive; got \[\[0.8, 0.0\], \[-0.5, 0.1\]"),
+    ("moves", [[0.8, 0.0, 1.0]] * 3, r"`moves` must be null or a list of pairs of numbers; "
+     r"got \[\[0.8, 0.0, 1.0\]"),
+    ("moves", "fixed", r"`moves` must be null or a list of pairs of numbers; got 'fixed'"),
+    ("moves", [[0.8, float("inf")]] * 3, r"`moves` must be finite; got \[\[0.8, inf\]"),
+    ("moves", [[0.8, True]] * 3, r"`moves` must be null or a list of pairs"),
+    ("initial_xy", [[0.0, 0.0], [1.0, 0.0]], r"`initial_xy` must be null or a list of 3 pairs "
+     r"of numbers; got \[\[0.0, 0.0\], \[1.0, 0.0\]\]"),
+    ("initial_xy", [[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]], r"`Scenario\(initial_xy=...\)` must "
+     r"be a triangle \(three non-collinear points\); got \[\[0.0, 0.0\], \[1.0, 0.0\]"),
+    ("initial_xy", [[0.0, "a"], [1.0, 0.0], [0.0, 1.0]], r"`initial_xy` must be null or a list"),
 ]
 
 
@@ -205,3 +219,77 @@ def test_scenario_is_a_pytree_for_vmap():
     out = jax.vmap(lambda b: eqx.tree_at(lambda t: t.base, s, b).formation_xy())(bases)
     assert out.shape == (3, 3, 2)
     np.testing.assert_allclose(out[:, 1, 1], bases / 2)
+
+
+# --------------------------------------------------------------------------------------
+# Fixed moves and a general initial triangle (issue 8).
+
+MOVES_SEQ = ((0.7, 0.1), (0.9, -0.2), (0.6, 0.3))
+MOVES_CONC = ((0.7, 0.1), (0.9, -0.2), (0.6, 0.3), (0.8, 0.05))
+TRIANGLE = ((-1.3, 0.1), (0.05, 1.1), (0.0, -0.9))
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+@pytest.mark.parametrize("strategy, moves", [("sequential", MOVES_SEQ),
+                                             ("concurrent", MOVES_CONC)])
+def test_file_round_trip_with_moves_and_initial_xy(tmp_path, suffix, strategy, moves):
+    s = Scenario.paper(strategy, moves=moves, initial_xy=TRIANGLE, base=2.5, side=1.4)
+    assert s.fixed_moves and s.moves.shape == (len(moves), 2)
+    np.testing.assert_array_equal(s.formation_xy(), np.asarray(TRIANGLE))
+    path = tmp_path / f"designed{suffix}"
+    save_scenario(s, path)
+    back = load_scenario(path)
+    assert bool(eqx.tree_equal(s, back, typematch=True))
+    np.testing.assert_array_equal(back.moves, np.asarray(moves))
+    np.testing.assert_array_equal(back.initial_xy, np.asarray(TRIANGLE))
+    d = scenario_to_dict(s)
+    assert d["moves"] == [list(m) for m in moves]
+    assert d["initial_xy"] == [list(p) for p in TRIANGLE]
+    # Either one alone.
+    for kwargs in ({"moves": moves}, {"initial_xy": TRIANGLE}):
+        one = Scenario.paper(strategy, **kwargs)
+        assert bool(eqx.tree_equal(scenario_from_dict(scenario_to_dict(one)), one))
+
+
+def test_files_without_moves_are_unchanged(tmp_path):
+    # Scenarios without the new fields write no new keys (a study's manifest, which holds
+    # the scenario dict, still matches one written before they existed); `null` reads as
+    # absent.
+    d = scenario_to_dict(Scenario.paper())
+    assert "moves" not in d and "initial_xy" not in d
+    s = scenario_from_dict({**d, "moves": None, "initial_xy": None})
+    assert s.moves is None and s.initial_xy is None and not s.fixed_moves
+    assert bool(eqx.tree_equal(s, Scenario.paper()))
+    (tmp_path / "m.yaml").write_text(
+        "strategy: concurrent\nmoves:\n  - [0.8, 0.0]\n  - [0.8, 0.0]\n  - [0.5, 1]\n"
+        "  - [1, -0.5]\ninitial_xy: [[-1, 0], [0, 1], [0, -1]]\n"
+    )
+    s = load_scenario(tmp_path / "m.yaml")
+    assert s.moves.dtype == jnp.float64 and s.initial_xy.dtype == jnp.float64
+    np.testing.assert_array_equal(s.moves[2:], [[0.5, 1.0], [1.0, -0.5]])
+    np.testing.assert_array_equal(s.formation_xy(), [[-1, 0], [0, 1], [0, -1]])
+
+
+def test_moves_and_initial_xy_constructor_errors():
+    with pytest.raises(ValueError, match=r"`Scenario\(moves=...\)` must have shape \(4, 2\)"):
+        Scenario.paper("concurrent", moves=MOVES_SEQ)
+    with pytest.raises(ValueError, match=r"`Scenario\(moves=...\)` must be finite"):
+        Scenario.paper(moves=((0.8, math.nan),) * 3)
+    with pytest.raises(ValueError, match=r"lengths \(column 0\) must be positive; got .*0.0"):
+        Scenario.paper(moves=((0.0, 0.0),) * 3)
+    with pytest.raises(ValueError, match=r"`Scenario\(initial_xy=...\)` must have shape"):
+        Scenario.paper(initial_xy=(0.0, 1.0))
+    with pytest.raises(ValueError, match=r"`Scenario\(initial_xy=...\)` must be finite"):
+        Scenario.paper(initial_xy=((0.0, 0.0), (1.0, math.inf), (0.0, 1.0)))
+
+
+def test_moves_and_initial_xy_are_array_leaves():
+    s = Scenario.paper(moves=MOVES_SEQ, initial_xy=TRIANGLE)
+    f32 = astype(s, jnp.float32)
+    assert f32.moves.dtype == jnp.float32 and f32.initial_xy.dtype == jnp.float32
+    # Differentiable and vmappable like every other parameter.
+    g = jax.grad(lambda m: jnp.sum(eqx.tree_at(lambda t: t.moves, s, m).moves ** 2))(s.moves)
+    np.testing.assert_allclose(g, 2 * np.asarray(MOVES_SEQ))
+    xs = jnp.stack([s.initial_xy, s.initial_xy + 0.1])
+    out = jax.vmap(lambda x: eqx.tree_at(lambda t: t.initial_xy, s, x).formation_xy())(xs)
+    np.testing.assert_allclose(out[1], np.asarray(TRIANGLE) + 0.1)

@@ -207,3 +207,93 @@ def test_ptz_unproject_is_in_the_base_frame():
     b = np.asarray(obs.mutual[ok][:, 0, 0, 1])
     assert np.all(b[:, 0] > 0) and np.all(b[:, 1] > 0)
     assert np.allclose(R_BODY_PTZ @ np.array([0.0, 0.0, 1.0]), [1.0, 0.0, 0.0])
+
+
+# --------------------------------------------------------------------------------------
+# Fixed moves and a general initial triangle (issue 8).
+
+TRIANGLE = np.array([[-1.2, 0.05], [0.05, 1.05], [-0.05, -0.95]])
+FIXED = {
+    "sequential": np.array([[0.7, 0.1], [0.9, -0.2], [0.6, 0.15]]),
+    "concurrent": np.array([[0.7, 0.1], [0.9, -0.2], [0.6, 0.3], [0.5, -0.25]]),
+}
+_single = eqx.filter_jit(simulate_cycle)
+
+
+def _fixed_scenario(strategy, ground=None, moves=None):
+    return Scenario.paper(
+        strategy, ground=ground, initial_xy=TRIANGLE,
+        moves=FIXED[strategy] if moves is None else moves, headings=(0.02, -0.1, 0.1),
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_fixed_moves_are_applied_exactly(strategy):
+    from jaxloc._world import FlatSurface
+
+    # On a flat ground a move of length L in direction phi (mover's body frame at the
+    # start of the move) displaces the robot by exactly L (cos phi, sin phi, 0) in that
+    # frame; on the saddle, the same holds for the tangent-plane step's (x, y), and the
+    # end point is dropped onto the surface.
+    ground = FlatSurface(0.0) if strategy == "concurrent" else None
+    s = _fixed_scenario(strategy, ground)
+    runs = [_single(s, jr.key(k)) for k in (0, 1)]
+    for truth, obs, ok in runs:
+        assert bool(ok)
+        R = np.asarray(truth.T_env_body.rotation().as_matrix())  # (steps, 3, 3, 3)
+        p = np.asarray(truth.T_env_body.translation())  # (steps, 3, 3)
+        np.testing.assert_allclose(p[0, :, :2], TRIANGLE, atol=1e-14)
+        moved = np.zeros(p.shape[:2], bool)
+        for m, (k, r) in enumerate(zip(move_start_step(strategy), moving_robot(strategy))):
+            length, phi = FIXED[strategy][m]
+            step = length * (np.cos(phi) * R[k, r, :, 0] + np.sin(phi) * R[k, r, :, 1])
+            np.testing.assert_allclose(p[k + 1, r, :2] - p[k, r, :2], step[:2], atol=1e-12)
+            if ground is not None:
+                d_body = R[k, r].T @ (p[k + 1, r] - p[k, r])
+                np.testing.assert_allclose(d_body, [length * np.cos(phi),
+                                                    length * np.sin(phi), 0.0], atol=1e-12)
+                np.testing.assert_allclose(truth.move_distances[m], length, atol=1e-12)
+            moved[k + 1, r] = True
+        # Robots that do not move stay put, and so do headings.
+        for k in range(1, p.shape[0]):
+            still = ~moved[k]
+            np.testing.assert_allclose(p[k, still], p[k - 1, still], atol=1e-14)
+        heading = np.arctan2(R[:, :, 1, 0], R[:, :, 0, 0])  # body x projected on E x-y
+        np.testing.assert_allclose(heading, np.broadcast_to([0.02, -0.1, 0.1], heading.shape),
+                                   atol=1e-12)
+    # The key draws only noise: both cycles have the same geometry.
+    _assert_trees_close(runs[0][0].T_env_body, runs[1][0].T_env_body, atol=0.0)
+    assert not np.allclose(runs[0][1].mutual, runs[1][1].mutual)
+
+
+def test_infeasible_fixed_moves_are_flagged_not_resampled():
+    # C2 backs off 3 m: it leaves the overhead camera's view. The simulator keeps the move
+    # (no resampling) and flags the cycle; the lost sighting's pixels are NaN.
+    moves = FIXED["sequential"].copy()
+    moves[0] = (3.0, np.pi)
+    truth, obs, ok = _single(_fixed_scenario("sequential", moves=moves), jr.key(0))
+    assert not bool(ok)
+    np.testing.assert_allclose(truth.move_distances[0], 3.0, rtol=0.02)  # 3D, on the saddle
+    assert not bool(obs.overhead_visible[1, 1]) and np.all(np.isnan(obs.overhead_pixels[1, 1]))
+    assert bool(obs.overhead_visible[0, 1])
+
+
+def test_fixed_moves_and_triangle_are_differentiable():
+    s = _fixed_scenario("sequential")
+
+    def final(moves, xy):
+        scn = eqx.tree_at(lambda t: (t.moves, t.initial_xy), s, (moves, xy))
+        return simulate_cycle(scn, jr.key(0))[0].T_env_body.translation()[-1, 0]
+
+    moves, xy = jnp.asarray(FIXED["sequential"]), jnp.asarray(TRIANGLE)
+    g_moves, g_xy = jax.jit(jax.jacfwd(final, argnums=(0, 1)))(moves, xy)
+    h = 1e-6
+    f = jax.jit(final)
+    fd = (f(moves.at[2, 1].add(h), xy) - f(moves.at[2, 1].add(-h), xy)) / (2 * h)
+    np.testing.assert_allclose(g_moves[:, 2, 1], fd, atol=1e-7)
+    fd = (f(moves, xy.at[0, 0].add(h)) - f(moves, xy.at[0, 0].add(-h))) / (2 * h)
+    np.testing.assert_allclose(g_xy[:, 0, 0], fd, atol=1e-7)
+    # C1 moves last (sequential): it follows its start about one for one (the tangent
+    # plane turns a little on the saddle); C2's move does not change C1's end.
+    np.testing.assert_allclose(g_xy[:2, 0, :], np.eye(2), atol=0.02)
+    np.testing.assert_allclose(g_moves[:, 0], 0.0, atol=1e-12)
