@@ -240,29 +240,38 @@ def test_mc_objective_gradient_matches_finite_differences():
 
 @pytest.mark.slow
 def test_cli_design_round_trips_through_a_scenario_file(tmp_path):
+    # design (fixed moves, general triangle) -> scenario file -> `jaxloc simulate`: the file
+    # holds the optimized formation, moves included, and the simulation runs it.
     from jaxloc._cli import main
     from jaxloc._formation import CONSTRAINT_SCALES
 
     out, report_path = tmp_path / "designed.yaml", tmp_path / "report.json"
-    argv = ["design", "--strategy", "sequential", "--free", "base,side,overhead_xy",
-            "--starts", "2", "--draws", "4", "--iterations", "6", "--image-margin", "4",
-            "--out", str(out), "--json", str(report_path), "--plot", str(tmp_path / "f.png")]
+    argv = ["design", "--strategy", "sequential", "--moves", "fixed", "--triangle", "general",
+            "--free", "initial_xy,overhead_xy,moves", "--starts", "2", "--draws", "1",
+            "--iterations", "4", "--image-margin", "4", "--out", str(out),
+            "--json", str(report_path), "--plot", str(tmp_path / "f.png")]
     args = _parser().parse_args(argv)
     assert args.func(args) == 0
     report = json.loads(report_path.read_text())
-    loaded = Formation.from_scenario(load_scenario(out))
+    scenario = load_scenario(out)
+    loaded = Formation.from_scenario(scenario)
+    assert loaded.fixed_moves and loaded.general_triangle
     for name, value in report["optimized"].items():
         if value is not None:
             np.testing.assert_allclose(getattr(loaded, name), value, rtol=1e-12)
     # Frozen parameters kept, free ones moved; the objective went down on the design draws.
     assert report["optimized"]["headings"] == report["initial"]["headings"]
-    assert report["optimized"]["overhead_xy"] != report["initial"]["overhead_xy"]
+    assert report["optimized"]["moves"] != report["initial"]["moves"]
     before, after = report["objective"]["design_draws"]
     assert after < before
     # Constraints hold at the optimum (up to the penalty's tolerance, a fraction of a scale).
     for k, v in report["constraint_margins"].items():
         assert v >= -0.25 * CONSTRAINT_SCALES[k], (k, v)
     assert os.path.getsize(tmp_path / "f.png") > 0
+    # The simulated robots stand where the design placed them.
+    truth, _, _ = simulate_cycle(scenario, jr.key(3))
+    pl = place_fixed(loaded, scenario)
+    np.testing.assert_allclose(truth.T_env_body.translation(), pl.p_body, atol=1e-12)
     # `jaxloc simulate` accepts the written scenario.
     assert main(["simulate", "--scenario", str(out), "--trials", "8", "--chunk-size", "8",
                  "--methods", "robust", "--no-progress"]) == 0
