@@ -87,7 +87,13 @@ from ._markers import (
     MarkerDetection as MarkerDetection,
     read_image as read_image,
 )
-from ._montecarlo import run_chunk as run_chunk, run_study as run_study, trial_key as trial_key
+from ._montecarlo import (
+    precompile as precompile,
+    run_chunk as run_chunk,
+    run_study as run_study,
+    stream_study as stream_study,
+    trial_key as trial_key,
+)
 from ._mutual import mutual_localization as mutual_localization, MutualSolution as MutualSolution
 from ._observations import (
     CycleObservations as CycleObservations,
@@ -153,7 +159,11 @@ from ._solvers import (
     paper_linear_pose as paper_linear_pose,
     PoseSolution as PoseSolution,
 )
-from ._stats import describe as describe, summarize as summarize
+from ._stats import (
+    describe as describe,
+    StreamingSummary as StreamingSummary,
+    summarize as summarize,
+)
 from ._strategies import CycleEstimate as CycleEstimate, localize_cycle as localize_cycle
 from ._trial import (
     CAMERAS as CAMERAS,

@@ -3,6 +3,7 @@
 
 import argparse
 import json
+import os
 import sys
 import time
 
@@ -136,8 +137,27 @@ def _assumptions(scenario, trials: int, seed: int) -> str:
     )
 
 
+def _enable_compile_cache() -> str | None:
+    """Keep compiled XLA programs on disk between runs (JAX's persistent compilation
+    cache), so that only a command's first run pays for compilation. The folder is
+    `$JAXLOC_COMPILE_CACHE` (`off` disables it), else `$XDG_CACHE_HOME/jaxloc/xla` or
+    `~/.cache/jaxloc/xla`; a cache the user configured for JAX is left as it is."""
+    import jax
+
+    if jax.config.jax_compilation_cache_dir:
+        return jax.config.jax_compilation_cache_dir
+    path = os.environ.get("JAXLOC_COMPILE_CACHE")
+    if path is None:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        path = os.path.join(base, "jaxloc", "xla")
+    if path.strip().lower() in ("", "0", "off", "none", "false"):
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    return path
+
+
 def _run(scenarios: dict, args, title: str) -> int:
-    from ._montecarlo import run_study
+    from ._montecarlo import precompile, run_study, stream_study
     from ._stats import summarize
     from ._trial import METHODS
 
@@ -151,27 +171,39 @@ def _run(scenarios: dict, args, title: str) -> int:
     print(title)
     first = next(iter(scenarios.values()))
     print(_assumptions(first, args.trials, args.seed))
+    if args.stream and args.plot:
+        raise ValueError("--plot needs every trial's errors; it cannot be used with --stream.")
     studies = {}
+    t_start = time.perf_counter()
+    if len(scenarios) > 1:
+        precompile(list(scenarios.values()), args.chunk_size, methods)
+        report["compile_seconds"] = time.perf_counter() - t_start
+        print(f"\n(compiled {len(scenarios)} studies in parallel: "
+              f"{report['compile_seconds']:.1f} s)")
     for strategy, scenario in scenarios.items():
         t0 = time.perf_counter()
         out_dir = None if args.out is None else f"{args.out}/{strategy}"
-        study = run_study(
-            scenario,
-            args.trials,
+        kwargs = dict(
             seed=args.seed,
             chunk_size=args.chunk_size,
             methods=methods,
             out_dir=out_dir,
             progress=not args.no_progress,
         )
+        if args.stream:
+            summary = stream_study(scenario, args.trials, **kwargs)
+        else:
+            study = run_study(scenario, args.trials, **kwargs)
+            summary = summarize(study, methods)
+            studies[strategy] = study
         elapsed = time.perf_counter() - t0
-        summary = summarize(study, methods)
         summary["seconds"] = elapsed
         report["strategies"][strategy] = summary
-        studies[strategy] = study
         print()
         print(format_table(strategy, summary, methods))
-        print(f"({elapsed:.1f} s including compilation)")
+        print(f"({elapsed:.1f} s{'' if len(scenarios) > 1 else ' including compilation'})")
+    report["total_seconds"] = time.perf_counter() - t_start
+    print(f"\nTotal {report['total_seconds']:.1f} s.")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(report, f, indent=2)
@@ -273,6 +305,12 @@ def main(argv: list[str] | None = None) -> int:
         p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable)")
         p.add_argument("--no-progress", action="store_true")
         p.add_argument(
+            "--stream",
+            action="store_true",
+            help="bounded memory for any number of trials: keep only running statistics "
+            "(percentiles from histograms, within 1.2%%); no --plot",
+        )
+        p.add_argument(
             "--methods",
             metavar="LIST",
             help="comma-separated estimators to compare (default: paper,robust,refined)",
@@ -295,6 +333,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--trials must be positive; got {args.trials}")
     if getattr(args, "chunk_size", 1) <= 0:
         parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
+    _enable_compile_cache()
     try:
         return args.func(args)
     except (ValueError, FileNotFoundError) as e:

@@ -14,8 +14,9 @@ back, missing ones are computed; no trial is lost or duplicated.
 
 import json
 import os
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
 
 import equinox as eqx
 import jax
@@ -25,6 +26,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
 from ._scenario import Scenario, scenario_to_dict
+from ._stats import StreamingSummary
 from ._trial import METHODS, run_trial
 
 
@@ -68,6 +70,39 @@ def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[
     )
 
 
+def _chunk_inputs(scenario: Scenario, seed: int, start: int, chunk_size: int, methods):
+    n_dev = jax.device_count()
+    padded = -(-chunk_size // n_dev) * n_dev
+    # seed and start are passed as arrays so that every chunk reuses one compilation.
+    return (
+        scenario, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int64), padded,
+        tuple(methods),
+    )
+
+
+def precompile(
+    scenarios: Sequence[Scenario],
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+) -> None:
+    """Compile the chunk programs of several studies at once, before running them.
+
+    Tracing and lowering are Python and run one study after the other; XLA's compilations
+    release the GIL and run in parallel threads, one per study. On a machine with as many
+    cores as studies, all compile in about the time of the slowest one. Later
+    [`jaxloc.run_study`][] / [`jaxloc.run_chunk`][] calls with the same scenario, chunk
+    size and methods reuse the compiled programs (they do not depend on seed or chunk).
+    """
+    threads = []
+    for scenario in scenarios:
+        lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
+        thread = threading.Thread(target=lowered.compile, daemon=True)
+        thread.start()
+        threads.append(thread)
+    for thread in threads:
+        thread.join()
+
+
 def run_chunk(
     scenario: Scenario,
     seed: int,
@@ -85,14 +120,8 @@ def run_chunk(
     **Returns:** a dict of numpy arrays, the fields of [`jaxloc.TrialErrors`][] with a
     leading trial axis, plus `"index"` (the trial indices).
     """
-    n_dev = jax.device_count()
-    padded = -(-chunk_size // n_dev) * n_dev
     start = chunk_index * chunk_size
-    # seed and start are passed as arrays so that every chunk reuses one compilation.
-    errors = _run_chunk(
-        scenario, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int64), padded,
-        tuple(methods),
-    )
+    errors = _run_chunk(*_chunk_inputs(scenario, seed, start, chunk_size, methods))
     out = {name: np.asarray(getattr(errors, name))[:chunk_size] for name in FIELDS}
     out["index"] = np.arange(start, start + chunk_size, dtype=np.int64)
     return out
@@ -111,36 +140,17 @@ def _atomic_write_json(path: str, obj):
     os.replace(tmp, path)
 
 
-def run_study(
+def _study_chunks(
     scenario: Scenario,
     n_trials: int,
-    *,
-    seed: int = 0,
-    chunk_size: int = 4096,
-    methods: tuple[str, ...] = METHODS,
-    out_dir: str | None = None,
-    progress: bool = True,
-    on_chunk: Callable[[int, dict], None] | None = None,
-) -> dict[str, np.ndarray]:
-    """Run `n_trials` trials of `scenario` and return their errors.
-
-    **Arguments:**
-
-    - `scenario`: a [`jaxloc.Scenario`][].
-    - `n_trials`: number of trials (any positive int; the last chunk is partial).
-    - `seed`: the study's seed; trial `i` uses `fold_in(key(seed), i)`.
-    - `chunk_size`: trials per compiled call; bounds memory. Results do not depend on it.
-    - `methods`: estimators to compare on the same observations (see `jaxloc.METHODS`).
-    - `out_dir`: if given, every chunk is written there as it finishes, and a study
-      already present there is resumed (it must have the same scenario, seed, chunk size
-      and methods, or a `ValueError` says which differs).
-    - `progress`: show a progress bar with trials/s.
-    - `on_chunk`: optional callback `(chunk_index, arrays)` after each chunk.
-
-    **Returns:** dict of numpy arrays with a leading axis of `n_trials`: `"status"`
-    `(n, methods)`, `"position"`, `"rotation"` `(n, methods, 4)`, `"ypr"`,
-    `"position_vector"` `(n, methods, 4, 3)`, `"index"` `(n,)`.
-    """
+    seed: int,
+    chunk_size: int,
+    methods: tuple[str, ...],
+    out_dir: str | None,
+    progress: bool,
+) -> Iterator[dict[str, np.ndarray]]:
+    """Validate a study's settings, then yield its chunks' arrays in order (computed, or
+    read back from `out_dir` when a previous run wrote them)."""
     if not isinstance(n_trials, int) or n_trials <= 0:
         raise ValueError(f"`n_trials` must be a positive integer; got {n_trials!r}.")
     if not isinstance(chunk_size, int) or chunk_size <= 0:
@@ -172,7 +182,6 @@ def run_study(
         else:
             _atomic_write_json(path, manifest)
 
-    chunks: list[dict[str, np.ndarray]] = []
     bar = _progress(progress, n_trials)
     done = 0
     t0 = time.perf_counter()
@@ -191,15 +200,83 @@ def run_study(
             if chunk_path is not None:
                 _atomic_write_npz(chunk_path, arrays)
         arrays = {k: v[:size] for k, v in arrays.items()}
-        chunks.append(arrays)
         done += size
-        if on_chunk is not None:
-            on_chunk(c, arrays)
         if bar is not None:
             bar.advance(size, done / max(time.perf_counter() - t0, 1e-9))
+        yield arrays
     if bar is not None:
         bar.close()
+
+
+def run_study(
+    scenario: Scenario,
+    n_trials: int,
+    *,
+    seed: int = 0,
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+    out_dir: str | None = None,
+    progress: bool = True,
+    on_chunk: Callable[[int, dict], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Run `n_trials` trials of `scenario` and return their errors.
+
+    **Arguments:**
+
+    - `scenario`: a [`jaxloc.Scenario`][].
+    - `n_trials`: number of trials (any positive int; the last chunk is partial).
+    - `seed`: the study's seed; trial `i` uses `fold_in(key(seed), i)`.
+    - `chunk_size`: trials per compiled call; bounds the working memory. Results do not
+      depend on it.
+    - `methods`: estimators to compare on the same observations (see `jaxloc.METHODS`).
+    - `out_dir`: if given, every chunk is written there as it finishes, and a study
+      already present there is resumed (it must have the same scenario, seed, chunk size
+      and methods, or a `ValueError` says which differs).
+    - `progress`: show a progress bar with trials/s.
+    - `on_chunk`: optional callback `(chunk_index, arrays)` after each chunk.
+
+    **Returns:** dict of numpy arrays with a leading axis of `n_trials` (about 360 bytes
+    per trial with the three default methods; for studies too large to hold, use
+    [`jaxloc.stream_study`][]): `"status"` `(n, methods)`, `"position"`, `"rotation"`
+    `(n, methods, 4)`, `"ypr"`, `"position_vector"` `(n, methods, 4, 3)`, `"index"` `(n,)`.
+    """
+    chunks = []
+    for c, arrays in enumerate(
+        _study_chunks(scenario, n_trials, seed, chunk_size, methods, out_dir, progress)
+    ):
+        chunks.append(arrays)
+        if on_chunk is not None:
+            on_chunk(c, arrays)
     return {k: np.concatenate([ch[k] for ch in chunks]) for k in chunks[0]}
+
+
+def stream_study(
+    scenario: Scenario,
+    n_trials: int,
+    *,
+    seed: int = 0,
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+    out_dir: str | None = None,
+    progress: bool = True,
+) -> dict:
+    """Run a study of any size in bounded memory and return its summary.
+
+    The same trials, chunks, resumption and `out_dir` files as [`jaxloc.run_study`][]
+    (same arguments), but no chunk is kept in memory: each is folded into a
+    [`jaxloc.StreamingSummary`][] (exact means, RMSEs, failure counts, Cramér–Rao and
+    NEES means; percentiles from histograms, within 1.2%) and dropped. Memory is that of
+    one chunk's computation, whatever `n_trials`; with `out_dir`, every trial's errors
+    are also on disk.
+
+    **Returns:** [`jaxloc.summarize`][]'s dict, plus `"percentiles": "histogram"`.
+    """
+    summary = StreamingSummary(tuple(methods))
+    for arrays in _study_chunks(
+        scenario, n_trials, seed, chunk_size, methods, out_dir, progress
+    ):
+        summary.update(arrays)
+    return summary.result()
 
 
 class _progress:

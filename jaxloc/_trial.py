@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from ._crlb import cycle_covariance, cycle_crlb
+from ._crlb import _covariance_at, _covariance_inputs, _crlb_inputs
 from ._misc import adjugate3, safe_norm
 from ._observations import CyclePoses
 from ._pose import rotation_error, ypr_from_rotation
@@ -143,17 +143,28 @@ def run_trial(
     but meaningless: statistics must skip them (see [`jaxloc.summarize`][]).
     """
     truth, observations, all_visible = simulate_cycle(scenario, key)
+    strategy = observations.strategy
     fields = []
-    nees = jnp.full((4,), jnp.nan, dtype=truth.poses.T_world_overhead.wxyz_xyz.dtype)
+    refined_error = None
+    # The Cramér–Rao bound (information at the truth) and the refined estimate's
+    # covariance (information at the estimate) are one computation at two linearization
+    # points: run them as one `vmap` over both, so it is compiled once.
+    points = [_crlb_inputs(scenario, truth.poses, strategy)]
     for method, estimate in zip(methods, estimate_all(observations, scenario, methods)):
         result = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
         pos, rot, ypr, diff = score(estimate.poses, truth.poses)
         fields.append((status_code(result), pos, rot, ypr, diff))
         if method == "refined":
-            cov = cycle_covariance(observations, scenario, estimate)
-            nees = _nees(diff, cov.position)
+            refined_error = diff
+            points.append(_covariance_inputs(observations, scenario, estimate))
     stacked = [jnp.stack(f) for f in zip(*fields)]
-    bound = cycle_crlb(scenario, truth.poses, observations.strategy)
-    crlb_pos = jnp.trace(bound.position, axis1=-2, axis2=-1)
-    crlb_rot = jnp.trace(bound.rotation, axis1=-2, axis2=-1)
+    covs = jax.vmap(lambda T_place, T_over, data: _covariance_at(
+        T_place, T_over, data, scenario, strategy
+    ))(*jax.tree.map(lambda *x: jnp.stack(x), *points))
+    crlb_pos = jnp.trace(covs.position[0], axis1=-2, axis2=-1)
+    crlb_rot = jnp.trace(covs.rotation[0], axis1=-2, axis2=-1)
+    if refined_error is None:
+        nees = jnp.full((4,), jnp.nan, dtype=truth.poses.T_world_overhead.wxyz_xyz.dtype)
+    else:
+        nees = _nees(refined_error, covs.position[1])
     return TrialErrors(*stacked, crlb_pos, crlb_rot, nees)

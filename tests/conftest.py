@@ -8,6 +8,15 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
+# JAX's persistent compilation cache, shared by every test process (the slow-test run,
+# notebook and command-line subprocesses reuse what the default run compiled): most of
+# the suite's time is XLA compilation of the same programs.
+_XLA_CACHE = os.path.abspath(
+    os.path.join(os.path.dirname(__file__), "..", ".pytest_cache", "xla")
+)
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _XLA_CACHE)
+os.environ.setdefault("JAXLOC_COMPILE_CACHE", os.environ["JAX_COMPILATION_CACHE_DIR"])
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 
 SHARED = os.path.join(os.path.dirname(__file__), "..", "..", "shared")
 

@@ -4,6 +4,8 @@ import subprocess
 import sys
 import textwrap
 
+import jax
+import jax.monitoring
 import jaxloc
 import numpy as np
 import pytest
@@ -130,6 +132,60 @@ def test_summary_skips_and_counts_failures(reference):
     assert stats["rmse"] == pytest.approx(np.sqrt(12.5))
 
 
+def _lower_percentile(x, q):
+    return float(np.percentile(x, q, method="lower")) if x.size else float("nan")
+
+
+def test_streamed_summary_matches_the_in_memory_one(scenario, reference):
+    streamed = jaxloc.stream_study(
+        scenario, N, seed=SEED, chunk_size=32, methods=METHODS, progress=False
+    )
+    exact = jaxloc.summarize(reference, METHODS)
+    assert streamed["n_trials"] == exact["n_trials"] == N
+    for cam in jaxloc.CAMERAS:
+        assert streamed["crlb"][cam] == pytest.approx(exact["crlb"][cam], rel=1e-12)
+    for mi, method in enumerate(METHODS):
+        s, e = streamed["methods"][method], exact["methods"][method]
+        assert s["n_ok"] == e["n_ok"] and s["failures"] == e["failures"]
+        ok = reference["status"][:, mi] == 0
+        for ci, cam in enumerate(jaxloc.CAMERAS):
+            for metric, values in (
+                ("position_m", reference["position"][ok, mi, ci]),
+                ("rotation_rad", reference["rotation"][ok, mi, ci]),
+            ):
+                got, want = s["cameras"][cam][metric], e["cameras"][cam][metric]
+                assert got["mean"] == pytest.approx(want["mean"], rel=1e-12, abs=1e-15)
+                assert got["rmse"] == pytest.approx(want["rmse"], rel=1e-12, abs=1e-15)
+                # A histogram percentile is within one bin (1.2%) of the order statistic
+                # at the floor of np.percentile's rank; values below 1e-12 read as 0.
+                for key, q in (("median", 50), ("p90", 90), ("p99", 99)):
+                    order_stat = _lower_percentile(values, q)
+                    if order_stat < 1e-12:
+                        assert got[key] == 0.0
+                    else:
+                        assert got[key] == pytest.approx(order_stat, rel=0.012)
+
+
+def test_precompiled_studies_run_without_compiling_again(reference):
+    scenario = jaxloc.Scenario.paper(strategy="sequential")
+    jaxloc.precompile([scenario], chunk_size=40, methods=METHODS)  # a size not used before
+    compile_seconds = []
+
+    def listen(event, seconds, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compile_seconds.append(seconds)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        study = jaxloc.run_study(
+            scenario, N, seed=SEED, chunk_size=40, methods=METHODS, progress=False
+        )
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert sum(compile_seconds) < 1.0, compile_seconds  # compiling the chunk takes >10 s
+    _same(reference, study)
+
+
 def test_bad_arguments_are_rejected(scenario):
     with pytest.raises(ValueError, match="n_trials"):
         jaxloc.run_study(scenario, 0)
@@ -171,6 +227,18 @@ def test_cli_simulate_round_trips_a_scenario_file(scenario, reference, tmp_path,
     assert summary["methods"]["robust"]["cameras"]["C"]["position_m"] == pytest.approx(
         expected["methods"]["robust"]["cameras"]["C"]["position_m"]
     )
+    streamed = str(tmp_path / "streamed.json")
+    args = ["simulate", "--scenario", path, "--trials", str(N), "--seed", str(SEED)]
+    args += ["--chunk-size", "32", "--no-progress", "--methods", ",".join(METHODS)]
+    assert main(args + ["--stream", "--json", streamed]) == 0
+    with open(streamed) as f:
+        got = json.load(f)["strategies"]["sequential"]["methods"]["robust"]["cameras"]["C"]
+    want = expected["methods"]["robust"]["cameras"]["C"]["position_m"]
+    assert got["position_m"]["rmse"] == pytest.approx(want["rmse"], rel=1e-12)
+    robust = METHODS.index("robust")
+    values = reference["position"][reference["status"][:, robust] == 0, robust, 0]
+    assert got["position_m"]["median"] == pytest.approx(_lower_percentile(values, 50), rel=0.012)
+    assert main(args + ["--stream", "--plot", str(tmp_path / "p.png")]) == 2
 
 
 def test_cli_rejects_bad_input(tmp_path, capsys):
