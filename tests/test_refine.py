@@ -4,12 +4,14 @@ Compilations are shared: one module-level `jit(vmap(...))` at a fixed batch size
 the exactness, Monte Carlo, NEES and failure-code tests.
 """
 
+import cv2
 import jax
 import jax.numpy as jnp
 import jax.random as jr
 import jaxlie
 import numpy as np
 import pytest
+from jaxloc._pose import pose_from_opencv, pose_to_opencv
 from jaxloc._presets import paper_overhead_camera
 from jaxloc._refine_pose import refine_overhead_pose
 from jaxloc._results import RESULTS
@@ -236,3 +238,99 @@ def test_robust_losses_resist_an_outlier():
     cauchy = refine_overhead_pose(T0, CAM, X, uv, sigma=0.3, solver="gn", loss="cauchy")
     assert err(huber) < 0.5 * err(plain), (err(huber), err(plain))
     assert err(cauchy) < 0.2 * err(plain), (err(cauchy), err(plain))
+
+
+def _cv2_refine(X, uv, T0):
+    """`cv2.solvePnPRefineLM` from `T0` (wxyz_xyz), returning wxyz_xyz."""
+    K, dist, _ = CAM.to_opencv()
+    rvec, tvec = (
+        np.array(a, float).reshape(3, 1) for a in pose_to_opencv(jaxlie.SE3(jnp.asarray(T0)))
+    )
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 200, 1e-15)
+    rvec, tvec = cv2.solvePnPRefineLM(
+        np.asarray(X, float), np.asarray(uv, float), K, dist, rvec, tvec, crit
+    )
+    return np.asarray(pose_from_opencv(rvec.ravel(), tvec.ravel()).wxyz_xyz)
+
+
+def test_lm_agrees_with_cv2_refine_lm():
+    """jaxloc's LM (default solver) reaches the same minimum as OpenCV's, 2 px noise,
+    started 1 cm / 10 mrad off the truth (issue 5)."""
+    X, T = _batch_problems(6)
+    uv = np.asarray(_project_all(T, X))
+    uv = uv + 2.0 * np.random.default_rng(6).normal(size=uv.shape)
+    T0 = _perturb(jnp.asarray(T), jr.key(6), 0.01)
+    pose, result, stats = _refine_batch(T0, X, uv, np.ones((BATCH, N_POINTS), bool))
+    ok = np.asarray(result._value) == 0
+    # A few random geometries here have a nearly flat valley where Gauss--Newton contracts
+    # by ~0.9 per step (optimistix needs even more steps): reported, not hidden.
+    assert ok.mean() > 0.95
+    assert np.median(np.asarray(stats["num_steps"])[ok]) <= 5
+    idx = np.flatnonzero(ok)[::8]
+    ref = np.stack([_cv2_refine(X[i], uv[i], T0[i]) for i in idx])
+    mine = np.array(pose[idx])
+    mine[:, :4] *= np.sign(np.sum(mine[:, :4] * ref[:, :4], axis=1, keepdims=True))
+    diff = np.abs(mine - ref).max(axis=1)
+    # OpenCV stops earlier where Gauss--Newton contracts slowly (its own criteria): up to
+    # ~3e-5 apart there, and jaxloc's cost is never higher.
+    assert np.median(diff) < 5e-6 and diff.max() < 1e-4, diff
+    cost = lambda T: np.sum((np.asarray(_project_all(T, X[idx])) - uv[idx]) ** 2, (1, 2))  # noqa: E731
+    assert np.all(cost(mine) <= cost(ref) + 1e-9)
+
+
+def test_lm_gn_agree_with_optimistix():
+    """Same minimum as `optx.LevenbergMarquardt` (`solver="optx-lm"`) and as jaxloc's
+    Gauss--Newton, here with a robust loss and an outlier (least squares and Cauchy: the
+    slow batched test); the covariance is the same formula."""
+    X, uv, T0 = _single_problem(seed=9, noise=1.0)
+    uv[0] += [6.0, -4.0]
+    T0 = jaxlie.SE3(jaxlie.manifold.rplus(T0, jnp.full(6, 0.01)).wxyz_xyz)
+    kw = dict(sigma=1.0, rtol=1e-10, atol=1e-10, max_steps=200, throw=False)
+    mine = refine_overhead_pose(T0, CAM, X, uv, loss="huber", **kw)
+    optx = refine_overhead_pose(T0, CAM, X, uv, loss="huber", solver="optx-lm", **kw)
+    assert mine.result == RESULTS.successful and optx.result == RESULTS.successful
+    _same_pose(mine.pose.wxyz_xyz, optx.pose.wxyz_xyz, 1e-9)
+    np.testing.assert_allclose(
+        mine.stats["covariance"], optx.stats["covariance"], rtol=1e-6, atol=1e-14
+    )
+    assert mine.stats["num_steps"] <= optx.stats["num_steps"]
+    gn = refine_overhead_pose(T0, CAM, X, uv, loss="huber", solver="gn", **kw)
+    _same_pose(gn.pose.wxyz_xyz, mine.pose.wxyz_xyz, 1e-9)
+
+
+def test_max_steps_reached_is_reported():
+    X, uv, T0 = _single_problem(seed=10, noise=1.0)
+    T0 = jaxlie.SE3(jaxlie.manifold.rplus(T0, jnp.full(6, 0.05)).wxyz_xyz)
+    sol = refine_overhead_pose(T0, CAM, X, uv, max_steps=1, throw=False)
+    assert sol.result == RESULTS.nonlinear_max_steps_reached
+    np.testing.assert_array_equal(np.asarray(sol.pose.wxyz_xyz), [1, 0, 0, 0, 0, 0, 0])
+    with pytest.raises(Exception, match="maximum number of steps"):
+        refine_overhead_pose(T0, CAM, X, uv, max_steps=1)
+
+
+@pytest.mark.slow
+def test_all_solvers_agree_batched():
+    X, T = _batch_problems(11)
+    uv = np.asarray(_project_all(T, X)) + np.random.default_rng(11).normal(size=(BATCH, 6, 2))
+    T0 = _perturb(jnp.asarray(T), jr.key(11), 0.02)
+
+    def run(solver):
+        @jax.jit
+        def f(T0, X, uv):
+            def one(t0, x, u):
+                s = refine_overhead_pose(
+                    jaxlie.SE3(t0), CAM, x, u, solver=solver, rtol=1e-10, atol=1e-10,
+                    loss="cauchy", throw=False,
+                )
+                return s.pose.wxyz_xyz, s.result._value
+
+            return jax.vmap(one)(T0, X, uv)
+
+        return f(T0, X, uv)
+
+    ref, code = run("optx-lm")
+    assert np.all(np.asarray(code) == 0)
+    for solver in ("lm", "gn", "optx-gn"):
+        pose, code = run(solver)
+        assert np.all(np.asarray(code) == 0), solver
+        _same_pose(pose, ref, 1e-8)
