@@ -2,9 +2,12 @@ r"""Overhead (wall-climbing robot) camera pose from the ground robots it sees (S
 
 The public entry point is [`jaxloc.solve_overhead_pose`][]. Its default method is robust to
 the coplanar / near-planar floors where the paper's Eq. 6 is rank deficient: it runs a
-branch-free Lambda Twist P3P on every point triplet, scores every candidate on all points
-by angular error, keeps the best, and polishes it with a few Gauss--Newton steps on the
-chordal bearing error. No `jnp.linalg` on that path (DESIGN §8).
+branch-free Lambda Twist P3P on the best-conditioned point triplets, scores every candidate
+on all points by angular error, keeps the best, and polishes it with jaxloc's
+Levenberg--Marquardt on the chordal bearing error (chain-rule Jacobian, implicit
+derivatives). No `jnp.linalg` on that path, and no gathers or batched `dot`s of tiny
+matrices (DESIGN §8). [`map_problems`][] batches any single-problem function over the host
+devices in cache-sized `vmap` steps.
 """
 
 import itertools
@@ -38,7 +41,7 @@ from ._solvers.p3p import p3p
 
 #: Triplets solved by P3P (the best-conditioned ones), and the polish's iteration limit.
 _NUM_TRIPLETS = 4
-_POLISH_STEPS = 10
+_POLISH_STEPS = 5
 
 
 def _normalize_rows(v: Float[Array, "n 3"]) -> Float[Array, "n 3"]:
@@ -242,13 +245,16 @@ def solve_overhead_pose(
     - `mask`: optional boolean `(n,)`; `False` marks points to ignore (their values, even
         NaN, are not used).
     - `method`: keyword only.
-        - `"robust"` (default, `n >= 3`): Lambda Twist P3P ([`jaxloc.p3p`][]) on all
-            C(n, 3) triplets (triplets with masked or nearly collinear points are skipped),
+        - `"robust"` (default, `n >= 3`): Lambda Twist P3P ([`jaxloc.p3p`][]) on the 4
+            best-conditioned of the C(n, 3) triplets (largest bearing-triangle area times
+            world-triangle shape; triplets with masked or nearly collinear points are
+            skipped; on the paper's 6-point problems as accurate as all 20 triplets),
             every candidate scored on all unmasked points by the sum of squared chordal
             bearing errors |q/|q| - b|^2 (~ squared angular error); candidates that put an
             unmasked point behind the camera (`b . q <= 0`) are discarded; the best is
-            polished with 5 Gauss--Newton steps on the same error. Works on coplanar and
-            near-planar points; no LAPACK. Cost grows as C(n, 3).
+            polished by at most 5 Levenberg--Marquardt steps on the same error. Works on
+            coplanar and near-planar points; no LAPACK. Cost grows as C(n, 3) only in
+            the cheap triplet scoring.
         - `"paper"` (`n >= 6`): the paper's linear Eq. 6, [`jaxloc.paper_linear_pose`][].
     - `throw`: keyword only. If `True`, raise (at run time, also under `jit`) when `result`
         is not successful; otherwise inspect `result`.
@@ -260,13 +266,15 @@ def solve_overhead_pose(
     **Returns:** a [`jaxloc.PoseSolution`][]. `result` is `successful`,
     `nonfinite_observation` (NaN/inf in an unmasked input), `too_few_points` (fewer than 3
     unmasked points; 6 for `"paper"`), `degenerate_configuration` (collinear points),
-    `no_valid_solution` (no candidate puts every point in front), or for `"paper"`
-    `rank_deficient` (coplanar points). On failure the pose is the identity, never NaN.
+    `no_valid_solution` (no candidate of the solved triplets puts every point in front),
+    or for `"paper"` `rank_deficient` (coplanar points). On failure the pose is the
+    identity, never NaN.
 
     Single problem; batch with `jax.vmap`. Shapes and `method` are checked eagerly
-    (`ValueError`). Safe under `jit`, `vmap` and `grad` (gradients flow through the P3P
-    depth polishing and the Gauss--Newton polish; the candidate choice is piecewise
-    constant).
+    (`ValueError`). Safe under `jit`, `vmap` and `grad`: derivatives are those of the
+    polished minimum of the chordal error w.r.t. `points_world` and `bearings` (implicit
+    function theorem; the candidate choice is piecewise constant). For large batches on
+    CPU, [`map_problems`][] is faster than `jax.jit(jax.vmap(...))`.
     """
     if method == "robust":
         X, b, m = check_inputs(

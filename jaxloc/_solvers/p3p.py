@@ -82,7 +82,10 @@ def _largest_cross(M: Float[Array, "3 3"]) -> Float[Array, "3"]:
     """Unit null vector of a rank-2 3x3 matrix: the largest cross product of two rows."""
     c = jnp.stack([jnp.cross(M[0], M[1]), jnp.cross(M[0], M[2]), jnp.cross(M[1], M[2])])
     n2 = jnp.sum(c * c, axis=-1)
-    best = c[jnp.argmax(n2)]
+    # Selects, not `c[argmax]`: a gather per problem under `vmap` (DESIGN §8).
+    best = jnp.where(
+        n2[0] >= jnp.maximum(n2[1], n2[2]), c[0], jnp.where(n2[1] >= n2[2], c[1], c[2])
+    )
     return _safe_normalize(best)[0]
 
 
@@ -161,7 +164,7 @@ def _refine_depths(lam, a, b):
         )
         det = _det3(J)
         ok = jnp.abs(det) > tiny
-        step = (_adj3(J) @ r) / jnp.where(ok, det, 1.0)
+        step = jnp.sum(_adj3(J) * r[None, :], axis=1) / jnp.where(ok, det, 1.0)
         new = lam - step
         r_new = _depth_residuals(new, a, b)
         better = ok & (jnp.sum(r_new * r_new) <= jnp.sum(r * r)) & jnp.all(jnp.isfinite(new))
@@ -180,8 +183,9 @@ def _triangle_frame(p: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
 
 def _pose_from_triangles(points_world, points_cam) -> Float[Array, "7"]:
     """`wxyz_xyz` of the rigid map taking the world triangle onto the camera triangle."""
-    R = _triangle_frame(points_cam) @ _triangle_frame(points_world).T
-    t = jnp.mean(points_cam, axis=0) - R @ jnp.mean(points_world, axis=0)
+    Fc, Fw = _triangle_frame(points_cam), _triangle_frame(points_world)
+    R = jnp.sum(Fc[:, None, :] * Fw[None, :, :], axis=-1)  # Fc Fw^T, element-wise
+    t = jnp.mean(points_cam, axis=0) - jnp.sum(R * jnp.mean(points_world, axis=0)[None], -1)
     return jnp.concatenate([jaxlie.SO3.from_matrix(R).wxyz, t])
 
 
@@ -213,9 +217,10 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
     eps = jnp.finfo(dtype).eps
     tiny = jnp.finfo(dtype).tiny
 
-    b = jnp.stack([y[0] @ y[1], y[0] @ y[2], y[1] @ y[2]])  # b12, b13, b23 (cosines)
+    dot = lambda u, v: jnp.sum(u * v)  # noqa: E731  (element-wise under vmap)
+    b = jnp.stack([dot(y[0], y[1]), dot(y[0], y[2]), dot(y[1], y[2])])  # b12, b13, b23
     d12, d13, d23 = X[0] - X[1], X[0] - X[2], X[1] - X[2]
-    a = jnp.stack([d12 @ d12, d13 @ d13, d23 @ d23])  # a12, a13, a23
+    a = jnp.stack([dot(d12, d12), dot(d13, d13), dot(d23, d23)])  # a12, a13, a23
 
     def closed_form(a, b):
         a12, a13, a23 = a[0], a[1], a[2]
@@ -229,8 +234,9 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
         D2 = a23 * M13 - a13 * M23
         # det(D1 + g D2) = det D1 + g tr(adj(D1) D2) + g^2 tr(D1 adj(D2)) + g^3 det D2.
         k3 = _det3(D2)
-        k2 = jnp.trace(D1 @ _adj3(D2))
-        k1 = jnp.trace(_adj3(D1) @ D2)
+        # trace(A B) = sum(A * B^T): element-wise, no batched `dot` under `vmap`.
+        k2 = jnp.sum(D1 * _adj3(D2).T)
+        k1 = jnp.sum(_adj3(D1) * D2.T)
         k0 = _det3(D1)
         # Solve in g (D0 = D1 + g D2) or in 1/g (D0 = D2 + mu D1), whichever has the larger
         # leading coefficient: avoids dividing by a vanishing det D2.
