@@ -32,7 +32,8 @@ from ._trial import METHODS, run_trial
 
 FIELDS = (
     "status", "position", "rotation", "ypr", "position_vector",
-    "crlb_position_var", "crlb_rotation_var", "nees",
+    "crlb_position_var", "crlb_rotation_var", "crlb_position_sample",
+    "crlb_rotation_sample", "nees",
 )
 
 
@@ -165,7 +166,7 @@ def _study_chunks(
         "seed": seed,
         "chunk_size": chunk_size,
         "methods": list(methods),
-        "format": 1,
+        "format": 2,
     }
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)

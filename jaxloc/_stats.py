@@ -80,6 +80,9 @@ def crlb_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict
             "position_rmse_m": float(np.sqrt(np.mean(study["crlb_position_var"][ok, ci]))),
             "rotation_rmse_rad": float(np.sqrt(np.mean(study["crlb_rotation_var"][ok, ci]))),
         }
+        if "crlb_position_sample" in study:
+            out[cam]["position_m"] = describe(study["crlb_position_sample"][ok, ci])
+            out[cam]["rotation_rad"] = describe(study["crlb_rotation_sample"][ok, ci])
     return out
 
 
@@ -109,35 +112,83 @@ BINS_PER_DECADE = 200
 _LOG_LO, _LOG_HI = -12, 3
 
 
+class _ColumnStats:
+    """Exact sums and log-spaced histograms of nonnegative values in `columns` columns."""
+
+    def __init__(self, columns: int):
+        self.edges = np.logspace(_LOG_LO, _LOG_HI, (_LOG_HI - _LOG_LO) * BINS_PER_DECADE + 1)
+        self.hist = np.zeros((columns, self.edges.size + 1), np.int64)  # [0, lo) .. [hi, inf)
+        self.sum = np.zeros(columns)
+        self.sumsq = np.zeros(columns)
+        self.n = np.zeros(columns, np.int64)
+
+    def update(self, column: int, x: np.ndarray) -> None:
+        x = np.asarray(x, np.float64)
+        self.sum[column] += x.sum()
+        self.sumsq[column] += (x * x).sum()
+        self.n[column] += x.size
+        bins = np.searchsorted(self.edges, x, side="right")
+        self.hist[column] += np.bincount(bins, minlength=self.hist.shape[1])
+
+    def _quantile(self, column: int, q: float) -> float:
+        # The rank np.percentile interpolates at, read off the histogram with a log-linear
+        # interpolation inside the bin that holds the order statistic at its floor.
+        hist = self.hist[column]
+        rank = q * (self.n[column] - 1)
+        cum = np.cumsum(hist)
+        b = int(np.searchsorted(cum, rank, side="right"))
+        if b == 0:
+            return 0.0
+        if b >= hist.size - 1:
+            return float(self.edges[-1])
+        lo, hi = np.log(self.edges[b - 1]), np.log(self.edges[b])
+        frac = (rank - cum[b - 1]) / hist[b]
+        return float(np.exp(lo + min(max(frac, 0.0), 1.0) * (hi - lo)))
+
+    def describe(self, column: int) -> dict[str, float]:
+        n = int(self.n[column])
+        if n == 0:
+            return {key: float("nan") for key in ("mean", "median", "rmse", "p90", "p99")}
+        return {
+            "mean": float(self.sum[column] / n),
+            "median": self._quantile(column, 0.5),
+            "rmse": float(np.sqrt(self.sumsq[column] / n)),
+            "p90": self._quantile(column, 0.9),
+            "p99": self._quantile(column, 0.99),
+        }
+
+
 class StreamingSummary:
     """[`jaxloc.summarize`][]'s statistics accumulated chunk by chunk in bounded memory.
 
     Means, RMSEs, failure counts, the Cramér–Rao means and the NEES means are exact (sums
     in float64). Medians and percentiles come from log-spaced histograms
     (`BINS_PER_DECADE` bins per decade between 1e-12 and 1e3; smaller values, such as the
-    reference robot's exact zero, count as 0): each is within 1.2% (relative) of the exact
-    order statistic. Memory: about 1 MB whatever the number of trials.
+    reference robot's exact zero, count as 0): each is within 1.2% (relative) of the
+    order statistic at the floor of `np.percentile`'s rank. Memory: a few MB whatever
+    the number of trials.
 
     Usage: `acc = StreamingSummary(methods)`, then `acc.update(chunk_arrays)` for each
     chunk (the dict [`jaxloc.run_chunk`][] returns), then `acc.result()`.
     """
 
+    _METRICS = ("position_m", "rotation_rad", "ypr_mean_abs_rad")
+
     def __init__(self, methods: tuple[str, ...]):
         self.methods = tuple(methods)
-        m, c = len(self.methods), len(CAMERAS)
-        self._edges = np.logspace(_LOG_LO, _LOG_HI, (_LOG_HI - _LOG_LO) * BINS_PER_DECADE + 1)
-        nb = self._edges.size + 1  # [0, lo), the bins, [hi, inf)
-        self._metrics = ("position_m", "rotation_rad", "ypr_mean_abs_rad")
-        self._hist = np.zeros((len(self._metrics), m, c, nb), np.int64)
-        self._sum = np.zeros((len(self._metrics), m, c))
-        self._sumsq = np.zeros((len(self._metrics), m, c))
-        self._n_ok = np.zeros(m, np.int64)
-        self._failures = [Counter() for _ in range(m)]
+        n_cam = len(CAMERAS)
+        self._errors = _ColumnStats(len(self._METRICS) * len(self.methods) * n_cam)
+        self._bound = _ColumnStats(2 * n_cam)  # crlb_{position,rotation}_sample
         self._n = 0
-        self._crlb = np.zeros((2, c))
+        self._n_ok = np.zeros(len(self.methods), np.int64)
+        self._failures = [Counter() for _ in self.methods]
+        self._crlb = np.zeros((2, n_cam))
         self._crlb_n = 0
-        self._nees_sum = np.zeros(c)
-        self._nees_n = np.zeros(c, np.int64)
+        self._nees_sum = np.zeros(n_cam)
+        self._nees_n = np.zeros(n_cam, np.int64)
+
+    def _column(self, k: int, mi: int, ci: int) -> int:
+        return (k * len(self.methods) + mi) * len(CAMERAS) + ci
 
     def update(self, arrays: dict[str, np.ndarray]) -> None:
         """Fold in one chunk of trials (arrays with a leading trial axis)."""
@@ -154,18 +205,18 @@ class StreamingSummary:
             self._n_ok[mi] += ok.sum()
             self._failures[mi].update(names.get(int(c), str(int(c))) for c in status[~ok, mi])
             for k, v in enumerate(values):
-                x = v[ok, mi].astype(np.float64)  # (n_ok, cameras)
-                self._sum[k, mi] += x.sum(axis=0)
-                self._sumsq[k, mi] += (x * x).sum(axis=0)
-                nb = self._hist.shape[-1]
-                bins = np.searchsorted(self._edges, x, side="right") + nb * np.arange(x.shape[1])
-                counts = np.bincount(bins.ravel(), minlength=nb * x.shape[1])
-                self._hist[k, mi] += counts.reshape(x.shape[1], nb)
+                for ci in range(len(CAMERAS)):
+                    self._errors.update(self._column(k, mi, ci), v[ok, mi, ci])
         if "crlb_position_var" in arrays:
             all_ok = np.all(status == 0, axis=1)
             self._crlb[0] += arrays["crlb_position_var"][all_ok].sum(axis=0)
             self._crlb[1] += arrays["crlb_rotation_var"][all_ok].sum(axis=0)
             self._crlb_n += int(all_ok.sum())
+            if "crlb_position_sample" in arrays:
+                n_cam = len(CAMERAS)
+                for ci in range(n_cam):
+                    self._bound.update(ci, arrays["crlb_position_sample"][all_ok, ci])
+                    self._bound.update(n_cam + ci, arrays["crlb_rotation_sample"][all_ok, ci])
         if "refined" in self.methods and "nees" in arrays:
             ok = status[:, self.methods.index("refined")] == 0
             x = arrays["nees"][ok]
@@ -173,41 +224,14 @@ class StreamingSummary:
             self._nees_sum += np.where(finite, x, 0.0).sum(axis=0)
             self._nees_n += finite.sum(axis=0)
 
-    def _quantile(self, hist: np.ndarray, n: int, q: float) -> float:
-        # Rank of np.percentile's linear interpolation, read off the histogram with a
-        # log-linear interpolation inside the bin that holds it.
-        rank = q * (n - 1)
-        cum = np.cumsum(hist)
-        b = int(np.searchsorted(cum, rank, side="right"))
-        if b == 0:
-            return 0.0
-        if b >= hist.size - 1:
-            return float(self._edges[-1])
-        lo, hi = np.log(self._edges[b - 1]), np.log(self._edges[b])
-        frac = (rank - cum[b - 1]) / hist[b]
-        return float(np.exp(lo + min(max(frac, 0.0), 1.0) * (hi - lo)))
-
-    def _describe(self, k: int, mi: int, ci: int) -> dict[str, float]:
-        n = int(self._n_ok[mi])
-        if n == 0:
-            return {key: float("nan") for key in ("mean", "median", "rmse", "p90", "p99")}
-        h = self._hist[k, mi, ci]
-        return {
-            "mean": float(self._sum[k, mi, ci] / n),
-            "median": self._quantile(h, n, 0.5),
-            "rmse": float(np.sqrt(self._sumsq[k, mi, ci] / n)),
-            "p90": self._quantile(h, n, 0.9),
-            "p99": self._quantile(h, n, 0.99),
-        }
-
     def result(self) -> dict:
         """The dict [`jaxloc.summarize`][] returns, for every trial folded in so far."""
         out = {"n_trials": self._n, "methods": {}, "percentiles": "histogram"}
         for mi, method in enumerate(self.methods):
             cameras = {
                 cam: {
-                    metric: self._describe(k, mi, ci)
-                    for k, metric in enumerate(self._metrics)
+                    metric: self._errors.describe(self._column(k, mi, ci))
+                    for k, metric in enumerate(self._METRICS)
                 }
                 for ci, cam in enumerate(CAMERAS)
             }
@@ -218,13 +242,15 @@ class StreamingSummary:
             }
         if self._crlb_n:
             n = self._crlb_n
-            out["crlb"] = {
-                cam: {
+            out["crlb"] = {}
+            for ci, cam in enumerate(CAMERAS):
+                out["crlb"][cam] = {
                     "position_rmse_m": float(np.sqrt(self._crlb[0, ci] / n)),
                     "rotation_rmse_rad": float(np.sqrt(self._crlb[1, ci] / n)),
                 }
-                for ci, cam in enumerate(CAMERAS)
-            }
+                if self._bound.n.any():
+                    out["crlb"][cam]["position_m"] = self._bound.describe(ci)
+                    out["crlb"][cam]["rotation_rad"] = self._bound.describe(len(CAMERAS) + ci)
         if "refined" in self.methods and self._nees_n.any():
             out["nees"] = {}
             for ci, cam in enumerate(CAMERAS):

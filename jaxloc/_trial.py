@@ -3,6 +3,7 @@
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.random as jr
 import jaxlie
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
@@ -53,6 +54,11 @@ class TrialErrors(eqx.Module):
     - `crlb_position_var`, `crlb_rotation_var`: trace of the Cramér–Rao bound's position
       (m^2) and rotation (rad^2) blocks for each camera at this trial's true poses,
       shape `(4,)`; the study's predicted RMSE is the square root of their mean.
+    - `crlb_position_sample`, `crlb_rotation_sample`: the norm of one draw from
+      `N(0, bound)` of each camera's position (m) and rotation (rad) block, shape `(4,)`:
+      the error of an estimator exactly at the bound on this trial's geometry. Their
+      distribution over the trials is what an efficient estimator's median, p90 and p99
+      would be (its tails included), beside the refined estimate's.
     - `nees`: normalized estimation error squared of each camera's final position under
       the refined estimate's own first-order covariance, `e^T P^-1 e`, shape `(4,)`
       (expected value 3 for a consistent estimator; NaN where not computed).
@@ -65,6 +71,8 @@ class TrialErrors(eqx.Module):
     position_vector: Float[Array, "methods 4 3"]
     crlb_position_var: Float[Array, "4"]
     crlb_rotation_var: Float[Array, "4"]
+    crlb_position_sample: Float[Array, "4"]
+    crlb_rotation_sample: Float[Array, "4"]
     nees: Float[Array, "4"]
 
 
@@ -132,6 +140,37 @@ def _nees(error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]) -> Floa
     return jax.vmap(one)(error, covariance)
 
 
+def _psd_cholesky3(P: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+    """Lower Cholesky factor of a 3x3 positive semi-definite matrix, element-wise (no
+    LAPACK call); a zero pivot (e.g. the fixed reference robot's zero covariance) gives a
+    zero column."""
+
+    def root(x):
+        ok = x > 0
+        return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+    def div(a, b):
+        ok = b > 0
+        return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+    l00 = root(P[0, 0])
+    l10, l20 = div(P[1, 0], l00), div(P[2, 0], l00)
+    l11 = root(P[1, 1] - l10 * l10)
+    l21 = div(P[2, 1] - l20 * l10, l11)
+    l22 = root(P[2, 2] - l20 * l20 - l21 * l21)
+    zero = jnp.zeros_like(l00)
+    return jnp.stack(
+        [jnp.stack([l00, zero, zero]), jnp.stack([l10, l11, zero]), jnp.stack([l20, l21, l22])]
+    )
+
+
+def _bound_samples(key, covariance: Float[Array, "4 3 3"]) -> Float[Array, "4"]:
+    """Norm of one `N(0, P)` draw per camera."""
+    z = jr.normal(key, (4, 3), covariance.dtype)
+    L = jax.vmap(_psd_cholesky3)(covariance)
+    return safe_norm(jnp.einsum("cij,cj->ci", L, z))
+
+
 def run_trial(
     scenario: Scenario, key: PRNGKeyArray, methods: tuple[str, ...] = METHODS
 ) -> TrialErrors:
@@ -167,4 +206,7 @@ def run_trial(
         nees = jnp.full((4,), jnp.nan, dtype=truth.poses.T_world_overhead.wxyz_xyz.dtype)
     else:
         nees = _nees(refined_error, covs.position[1])
-    return TrialErrors(*stacked, crlb_pos, crlb_rot, nees)
+    # A key of its own: the draws change nothing else in the trial.
+    k_pos, k_rot = jr.split(jr.fold_in(key, 0x0C7B))
+    samples = _bound_samples(k_pos, covs.position[0]), _bound_samples(k_rot, covs.rotation[0])
+    return TrialErrors(*stacked, crlb_pos, crlb_rot, *samples, nees)

@@ -142,8 +142,14 @@ def test_streamed_summary_matches_the_in_memory_one(scenario, reference):
     )
     exact = jaxloc.summarize(reference, METHODS)
     assert streamed["n_trials"] == exact["n_trials"] == N
-    for cam in jaxloc.CAMERAS:
-        assert streamed["crlb"][cam] == pytest.approx(exact["crlb"][cam], rel=1e-12)
+    all_ok = np.all(reference["status"] == 0, axis=1)
+    for ci, cam in enumerate(jaxloc.CAMERAS):
+        got, want = streamed["crlb"][cam], exact["crlb"][cam]
+        for key in ("position_rmse_m", "rotation_rmse_rad"):
+            assert got[key] == pytest.approx(want[key], rel=1e-12)
+        x = reference["crlb_position_sample"][all_ok, ci]
+        assert got["position_m"]["rmse"] == pytest.approx(want["position_m"]["rmse"], rel=1e-12)
+        assert got["position_m"]["p90"] == pytest.approx(_lower_percentile(x, 90), rel=0.012)
     for mi, method in enumerate(METHODS):
         s, e = streamed["methods"][method], exact["methods"][method]
         assert s["n_ok"] == e["n_ok"] and s["failures"] == e["failures"]
@@ -293,3 +299,34 @@ def test_chunks_as_ray_tasks_match_a_local_study(reference):
         ray.shutdown()
     merged = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
     _same(reference, merged)
+
+
+def test_bound_samples_follow_the_bound(reference):
+    from jaxloc._trial import _psd_cholesky3
+
+    rng = np.random.default_rng(0)
+    A = rng.standard_normal((3, 3))
+    for P in (A @ A.T, A[:, :2] @ A[:, :2].T, np.zeros((3, 3))):  # full rank, rank 2, zero
+        L = np.asarray(_psd_cholesky3(jax.numpy.asarray(P)))
+        np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
+        assert np.allclose(L, np.tril(L))
+    # The draws: mean square = trace, median of |x| that of the chi distribution.
+    from jaxloc._trial import _bound_samples
+
+    P = jax.numpy.asarray(np.stack([A @ A.T, np.diag([4.0, 1.0, 0.0]), np.zeros((3, 3)), A @ A.T]))
+    keys = jax.random.split(jax.random.key(0), 20_000)
+    x = np.asarray(jax.vmap(lambda k: _bound_samples(k, P))(keys))  # (draws, 4)
+    trace = np.trace(P[:2], axis1=1, axis2=2)
+    np.testing.assert_allclose(np.mean(x**2, axis=0)[:2], trace, rtol=0.05)
+    assert np.all(x[:, 2] == 0.0)
+    # In the study: one draw per trial, x^2 / trace has mean 1 and variance at most 2.
+    ok = np.all(reference["status"] == 0, axis=1)
+    for ci in range(4):
+        for sample, var in (
+            ("crlb_position_sample", "crlb_position_var"),
+            ("crlb_rotation_sample", "crlb_rotation_var"),
+        ):
+            x, v = reference[sample][ok, ci], reference[var][ok, ci]
+            assert np.all(np.isfinite(x)) and np.all(x >= 0)
+            ratio = x**2 / v
+            assert abs(np.mean(ratio) - 1.0) < 3 * np.sqrt(2.0 / ratio.size)
