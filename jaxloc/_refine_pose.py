@@ -1,9 +1,14 @@
 r"""Maximum-likelihood refinement of one camera pose from known world points (DESIGN §5).
 
 [`jaxloc.refine_overhead_pose`][] minimises the (optionally robust) reprojection error in
-the image over the SE(3) tangent around the starting pose (`T = T0 exp(delta)`,
-`delta = (v, omega)`, jaxlie's right perturbation `jaxlie.manifold.rplus`) with
-`optx.least_squares`. Gradients through it use optimistix's implicit adjoint.
+the image over the SE(3) tangent around the current pose (`T = T0 exp(delta)`,
+`delta = (v, omega)`, jaxlie's right perturbation `jaxlie.manifold.rplus`). Default
+solver: jaxloc's own Levenberg--Marquardt with the chain-rule Jacobian of the residuals
+(camera projection Jacobian times `dq/d delta = [R, R (e_k x X)]`), the 6x6 normal
+equations as element-wise sums and an unrolled Cholesky: no LAPACK, no batched `dot`
+(DESIGN §8), ~5x faster than `optx.least_squares` at the same minimum. Gradients through it
+by the implicit function theorem (custom JVP); the optimistix solvers (`"optx-lm"`,
+`"optx-gn"`) use optimistix's implicit adjoint.
 """
 
 import functools as ft
@@ -236,8 +241,8 @@ def refine_overhead_pose(
 
     Solves
     $\min_\delta \sum_i \rho\big(\|\pi(T_0 \exp(\delta)\, X_i) - u_i\|^2 / \sigma^2\big)$
-    with `optx.least_squares` over the SE(3) tangent `delta = (v, omega)` (jaxlie's right
-    perturbation, `jaxlie.manifold.rplus`), where $\pi$ is `camera.project`. A robust
+    over the SE(3) tangent `delta = (v, omega)` (jaxlie's right perturbation,
+    `jaxlie.manifold.rplus`), where $\pi$ is `camera.project`. A robust
     $\rho$ is applied per point by scaling its whitened 2-vector residual by
     $\sqrt{\rho(s)/s}$, which minimises $\sum \rho$ exactly.
 
@@ -254,7 +259,13 @@ def refine_overhead_pose(
         covariance's scale and the robust loss's scale, not the optimum of the plain
         least-squares cost. For the paper's noise model (radius ~ N(0, s), uniform
         direction) it is `s / sqrt(2)`. Keyword only (as are all below).
-    - `solver`: `"lm"` (`optx.LevenbergMarquardt`, default) or `"gn"` (`optx.GaussNewton`).
+    - `solver`: `"lm"` (default): jaxloc's Levenberg--Marquardt, re-linearized at the
+        current pose with the chain-rule Jacobian, element-wise 6x6 normal equations and
+        Cholesky (the fast path under `vmap`; see also `jaxloc._overhead.map_problems`);
+        converged when a step is below `atol + rtol * |t|_inf`, then one last
+        Gauss--Newton step polishes to rounding. `"gn"`: the same loop undamped
+        (Gauss--Newton). `"optx-lm"` / `"optx-gn"`: `optx.LevenbergMarquardt` /
+        `optx.GaussNewton` on the same residuals. All reach the same minimum.
     - `loss`: `None` (least squares), `"huber"` or `"cauchy"`.
     - `loss_scale`: the robust loss's threshold `c` in units of `sigma`; default 1.345 for
         Huber and 2.3849 for Cauchy.
@@ -271,7 +282,7 @@ def refine_overhead_pose(
     information matrix is singular, e.g. collinear points), `no_valid_solution` (the
     solution puts an unmasked point where the camera cannot project it, e.g. behind it). `stats`:
 
-    - `"num_steps"`: solver iterations.
+    - `"num_steps"`: solver iterations (model evaluations with a Jacobian).
     - `"rms_pixel_error"`: RMS over unmasked points of the reprojection error norm (px).
     - `"covariance"`: first-order covariance of the tangent `(v, omega)` of the refined
         pose (`T_true ~ T_hat exp(delta)`), $(J^\top J / \sigma^2)^{-1}$ with J the
@@ -280,7 +291,8 @@ def refine_overhead_pose(
         camera centre: propagate with `jax.jacfwd` for the centre.
 
     Single problem; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad` (implicit
-    adjoint through the optimum).
+    derivatives of the optimum w.r.t. the points, pixels, camera and `sigma`; none w.r.t.
+    the start).
     """
     points_world = jnp.asarray(points_world)
     pixels = jnp.asarray(pixels)
