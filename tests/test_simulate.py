@@ -281,14 +281,19 @@ def test_infeasible_fixed_moves_are_flagged_not_resampled():
 def test_fixed_moves_and_triangle_are_differentiable():
     s = _fixed_scenario("sequential")
 
+    def with_(moves, xy):
+        return eqx.tree_at(lambda t: (t.moves, t.initial_xy), s, (moves, xy))
+
     def final(moves, xy):
-        scn = eqx.tree_at(lambda t: (t.moves, t.initial_xy), s, (moves, xy))
-        return simulate_cycle(scn, jr.key(0))[0].T_env_body.translation()[-1, 0]
+        return simulate_cycle(with_(moves, xy), jr.key(0))[0].T_env_body.translation()[-1, 0]
 
     moves, xy = jnp.asarray(FIXED["sequential"]), jnp.asarray(TRIANGLE)
     g_moves, g_xy = jax.jit(jax.jacfwd(final, argnums=(0, 1)))(moves, xy)
     h = 1e-6
-    f = jax.jit(final)
+
+    def f(moves, xy):  # the jitted simulation shared with the tests above (no new compile)
+        return _single(with_(moves, xy), jr.key(0))[0].T_env_body.translation()[-1, 0]
+
     fd = (f(moves.at[2, 1].add(h), xy) - f(moves.at[2, 1].add(-h), xy)) / (2 * h)
     np.testing.assert_allclose(g_moves[:, 2, 1], fd, atol=1e-7)
     fd = (f(moves, xy.at[0, 0].add(h)) - f(moves, xy.at[0, 0].add(-h))) / (2 * h)
