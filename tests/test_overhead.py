@@ -219,6 +219,7 @@ def test_refine_seam():
     assert calls == [((6, 3), (6, 3), (6,))]
 
 
+@pytest.mark.slow  # a float32 compilation (~8 s cold)
 def test_float32():
     d = _problems(np.random.default_rng(9), 200, "paper")
     sol = _robust_batch(jnp.asarray(d["X"], jnp.float32), jnp.asarray(d["b"], jnp.float32))

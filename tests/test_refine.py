@@ -200,6 +200,7 @@ def _scalar(u, X, T0):
     return jnp.dot(_W[:3], centre) + jnp.dot(_W[3:], sol.pose.rotation().log())
 
 
+@pytest.mark.slow  # ~10 s cold; the shared implicit step is also checked by test_overhead
 def test_grad_wrt_pixels_matches_finite_differences():
     X, uv, T0 = _single_problem()
     g = jax.jit(jax.grad(_scalar))(jnp.asarray(uv), X, T0)
@@ -278,6 +279,7 @@ def test_lm_agrees_with_cv2_refine_lm():
     assert np.all(cost(mine) <= cost(ref) + 1e-9)
 
 
+@pytest.mark.slow  # three more compilations (~10 s cold)
 def test_lm_gn_agree_with_optimistix():
     """Same minimum as `optx.LevenbergMarquardt` (`solver="optx-lm"`) and as jaxloc's
     Gauss--Newton, here with a robust loss and an outlier (least squares and Cauchy: the
