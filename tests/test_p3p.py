@@ -108,6 +108,7 @@ def test_degenerate_finite():
         p3p(jnp.zeros((4, 3)), jnp.zeros((4, 3)))
 
 
+@pytest.mark.slow  # ~10 s cold; the robust solver's derivatives no longer go through P3P
 def test_grad_matches_finite_differences():
     rng = np.random.default_rng(3)
     X, y, R, t = _random_problems(rng, 1, "paper")
