@@ -103,7 +103,7 @@ from ._observations import (
     num_moves as num_moves,
     num_steps as num_steps,
 )
-from ._overhead import solve_overhead_pose as solve_overhead_pose
+from ._overhead import map_problems as map_problems, solve_overhead_pose as solve_overhead_pose
 from ._pose import (
     kabsch as kabsch,
     pose_from_opencv as pose_from_opencv,
@@ -125,7 +125,7 @@ from ._presets import (
     R_BODY_PTZ as R_BODY_PTZ,
 )
 from ._refine import refine_cycle as refine_cycle
-from ._refine_pose import refine_overhead_pose as refine_overhead_pose
+from ._refine_pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
 from ._render import (
     annulus_of as annulus_of,
     DEFAULT_MARKER_BGR as DEFAULT_MARKER_BGR,
