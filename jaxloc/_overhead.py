@@ -58,6 +58,19 @@ def _chordal_residuals(
     return (w[:, None] * (_normalize_rows(q) - b)).reshape(-1)
 
 
+def rotation_block(A: Float[Array, "n m 3"], X: Float[Array, "n 3"]) -> Float[Array, "n m 3"]:
+    """Jacobian block of a right perturbation's rotation `omega` from the translation block
+    `A = d r / d v`: `d r / d omega = A [e_k x X]_k` for world points `X`, element-wise."""
+    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+    zero = jnp.zeros_like(x0)
+    cross = jnp.stack(
+        [jnp.stack([zero, -x2, x1], -1), jnp.stack([x2, zero, -x0], -1),
+         jnp.stack([-x1, x0, zero], -1)],
+        axis=-1,
+    )  # [i, j, k] = (e_k x X_i)_j
+    return jnp.sum(A[:, :, :, None] * cross[:, None, :, :], axis=2)
+
+
 def _chordal_model(T: jaxlie.SE3, X, b, w):
     r"""Chordal residuals `(3n,)` and their Jacobian `(3n, 6)` w.r.t. the right
     perturbation `T exp(delta)` at `delta = 0`, by the chain rule, element-wise:
@@ -73,14 +86,7 @@ def _chordal_model(T: jaxlie.SE3, X, b, w):
     eye = jnp.eye(3, dtype=X.dtype)
     D = (w * inv)[:, None, None] * (eye[None] - u[:, :, None] * u[:, None, :])
     A = jnp.sum(D[:, :, :, None] * R[None, None, :, :], axis=2)  # d r / d v, (n, 3, 3)
-    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
-    zero = jnp.zeros_like(x0)
-    cross = jnp.stack(
-        [jnp.stack([zero, -x2, x1], -1), jnp.stack([x2, zero, -x0], -1),
-         jnp.stack([-x1, x0, zero], -1)],
-        axis=-1,
-    )  # [i, j, k] = (e_k x X_i)_j
-    Jw = jnp.sum(A[:, :, :, None] * cross[:, None, :, :], axis=2)
+    Jw = rotation_block(A, X)
     return r.reshape(-1), jnp.concatenate([A, Jw], axis=-1).reshape(-1, 6)
 
 

@@ -22,7 +22,6 @@ import jax.flatten_util
 import jax.numpy as jnp
 import jaxlie
 import optimistix as optx
-from jax.custom_derivatives import SymbolicZero
 
 from ._cycle_model import (
     _first_occurrence,
@@ -35,7 +34,7 @@ from ._cycle_model import (
     whitened_with_jacobian,
 )
 from ._misc import safe_sqrt
-from ._normal_equations import _cholesky, _cholesky_solve, _make_solver
+from ._normal_equations import _cholesky, _cholesky_solve, _jvp_nonzero, _make_solver
 from ._observations import CycleObservations, CyclePoses
 from ._results import raise_if_failed, RESULTS
 from ._scenario import Scenario
@@ -72,24 +71,6 @@ def _right_jacobians(theta, T0_place, T0_over, T_place, T_over):
         return jax.jacfwd(local)(th)
 
     return jax.vmap(one)(T0, T, theta.reshape(-1, 6)).astype(theta.dtype)
-
-
-def _jvp_nonzero(f, primals, tangents):
-    """`jax.jvp(f, primals, tangents)[1]` over the pytree `primals`, differentiating only
-    the leaves whose tangent is not a `SymbolicZero`; `None` if every tangent is zero."""
-    leaves, tree = jax.tree.flatten(primals)
-    dots = tree.flatten_up_to(tangents)
-    live = [i for i, t in enumerate(dots) if not isinstance(t, SymbolicZero)]
-    if not live:
-        return None
-
-    def of_live(*values):
-        full = list(leaves)
-        for i, v in zip(live, values):
-            full[i] = v
-        return f(tree.unflatten(full))
-
-    return jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])[1]
 
 
 @ft.partial(_cycle_residuals.defjvp, symbolic_zeros=True)

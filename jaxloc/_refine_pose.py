@@ -29,6 +29,7 @@ from ._normal_equations import (
     _pose_lm,
     _rplus,
 )
+from ._overhead import rotation_block
 from ._results import raise_if_failed, RESULTS
 from ._solvers.dlt import identity_like, PoseSolution, where_pose
 
@@ -106,15 +107,7 @@ def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, l
     Jp = jax.vmap(jax.jacfwd(camera.project))(q)  # (n, 2, 3)
     e = weight[:, None] * (pred - uv)
     A = weight[:, None, None] * jnp.sum(Jp[:, :, :, None] * R[None, None, :, :], axis=2)
-    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
-    zero = jnp.zeros_like(x0)
-    # Columns e_k x X of d(omega x X)/d omega.
-    cross = jnp.stack(
-        [jnp.stack([zero, -x2, x1], -1), jnp.stack([x2, zero, -x0], -1),
-         jnp.stack([-x1, x0, zero], -1)],
-        axis=-1,
-    )  # (n, 3, 3): [i, j, k] = (e_k x X_i)_j
-    Jw = jnp.sum(A[:, :, :, None] * cross[:, None, :, :], axis=2)
+    Jw = rotation_block(A, X)
     Je = jnp.concatenate([A, Jw], axis=-1)  # (n, 2, 6)
     if loss is None:
         return e, Je
