@@ -30,6 +30,7 @@ from jaxtyping import Array, Float
 
 from ._misc import adjugate3, safe_norm, safe_normalize
 from ._mutual import mutual_localization
+from ._normal_equations import _cholesky, _cholesky_solve
 from ._observations import (
     CycleObservations,
     CyclePoses,
@@ -196,21 +197,93 @@ def _solve3(A: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
     return jnp.where(jnp.abs(det) > 1e-300, adj @ b / safe, 0.0)
 
 
-def _overhead_misfit(obs: CycleObservations, P: Float[Array, "3 3 3"], rho):
-    """Overhead-camera misfit of each candidate scale set, `(candidates,)`.
+def _overhead_candidates(obs: CycleObservations, P: Float[Array, "3 3 3"]):
+    """The overhead camera's view of the concurrent cycle at unit first-formation scale.
 
-    The first formation's three points fix the overhead camera up to its scale by P3P
-    (independent of the candidate); the later formations' four points, placed with the
-    candidate's scale ratios `rho` (`(candidates, 3)`, `rho[:, 0] = 1`), must then
-    project onto their bearings. Sum of squared
-    chordal bearing errors (~ rad^2), best of the P3P solutions."""
+    The first formation's three points (C1 at the origin, C2 and C3 at `P[0]`) fix the
+    overhead camera up to that formation's scale by P3P, up to four solutions. Returns
+    `(poses, valid, unit, bearings, seen)`: the P3P poses `T_cam_world` (`(4, 7)`), their
+    validity, the seven distinct points at unit scales (`(7, 3)`), their mean overhead
+    bearings and whether each was seen."""
     unit = jnp.stack([P[0, 0], P[0, 1], P[0, 2], P[1, 1], P[1, 2], P[2, 1], P[2, 2]])
     _, bearings, seen = _overhead_problem(obs, P)
     sol = p3p(unit[:3], bearings[:3])
-    step_of = np.array([0, 0, 0, 1, 1, 2, 2])  # formation of each distinct point
+    return sol.poses.wxyz_xyz, sol.valid & jnp.all(seen[:3]), unit, bearings, seen
+
+
+# Nominal standard deviation (rad) of an overhead bearing, to weigh it against the
+# odometry when choosing the concurrent strategy's scales (2 px at a 650 px focal length
+# is 3 mrad; the paper's predicted points are worse).
+_NOMINAL_BEARING_SIGMA = 3e-3
+# Formation (step) of each of the concurrent strategy's seven distinct points.
+_CONCURRENT_STEP_OF = np.array([0, 0, 0, 1, 1, 2, 2])
+
+
+def _overhead_ratios(view) -> tuple[Float[Array, "4 7"], Float[Array, "4 3"]]:
+    r"""The overhead camera's pose and the scale ratios `(1, s1/s0, s2/s0)` it sees, from
+    each P3P pose of the first formation.
+
+    Unknowns: the camera pose `T_cam_world` and the log-ratios of the later formations,
+    whose points are `rho_k P_j`; started at the P3P pose and the ratios that put each
+    formation's points closest to their bearings from it (linear least squares), then a
+    few Gauss-Newton steps on the chordal bearing errors of all seven points. The overhead
+    camera measures these ratios far better than the odometry's quadratics (differences
+    of two noisy distance equations) on unfavourable moves. Returns `(poses, ratios)`,
+    `(4, 7)` and `(4, 3)`; a failed start keeps ratios 1."""
+    poses, valid, unit, bearings, seen = view
+    dtype = unit.dtype
+
+    def residuals(theta, T0):
+        T = jaxlie.manifold.rplus(jaxlie.SE3(T0), theta[:6])
+        rho = jnp.concatenate([jnp.ones(1, dtype), jnp.exp(theta[6:])])
+        q = jax.vmap(T.apply)(unit * rho[_CONCURRENT_STEP_OF][:, None])
+        return jnp.where(seen[:, None], safe_normalize(q) - bearings, 0.0).reshape(-1)
+
+    def linear_ratios(T0):
+        # With the camera fixed, formation k's moved points rho_k P_j lie on their
+        # bearings: b_j x (rho_k R P_j + t) = 0, linear least squares in rho_k.
+        T = jaxlie.SE3(T0)
+        a = jnp.cross(bearings, jax.vmap(T.rotation().apply)(unit))
+        c = jnp.cross(bearings, jnp.broadcast_to(T.translation(), unit.shape))
+        num = jnp.where(seen, -jnp.sum(a * c, axis=-1), 0.0)
+        den = jnp.where(seen, jnp.sum(a * a, axis=-1), 0.0)
+        return jnp.stack([
+            jnp.sum(num[_CONCURRENT_STEP_OF == k])
+            / jnp.maximum(jnp.sum(den[_CONCURRENT_STEP_OF == k]), 1e-30)
+            for k in (1, 2)
+        ])
+
+    def one(T0):
+        def step(theta):
+            r, J = residuals(theta, T0), jax.jacfwd(residuals)(theta, T0)
+            # Element-wise products, no `dot`: tiny matrices under `vmap` (DESIGN §8).
+            H = jnp.sum(J[:, :, None] * J[:, None, :], axis=0) + 1e-9 * jnp.eye(8, dtype=dtype)
+            return theta - _cholesky_solve(_cholesky(H), jnp.sum(J * r[:, None], axis=0))
+
+        rho0 = linear_ratios(T0)
+        theta = jnp.concatenate([jnp.zeros(6, dtype), jnp.log(jnp.clip(rho0, 0.05, 20.0))])
+        for _ in range(3):
+            theta = step(theta)
+        T = jaxlie.manifold.rplus(jaxlie.SE3(T0), theta[:6]).wxyz_xyz.astype(dtype)
+        return T, jnp.concatenate([jnp.ones(1, dtype), jnp.exp(theta[6:])])
+
+    T, rho = jax.vmap(one)(poses)
+    ok = valid[:, None] & jnp.all(jnp.isfinite(T), axis=1, keepdims=True)
+    ok = ok & jnp.isfinite(rho) & (rho > 0.05) & (rho < 20.0)
+    return jnp.where(ok[:, :1], T, poses), jnp.where(ok, rho, 1.0)
+
+
+def _overhead_misfit(view, rho):
+    """Overhead-camera misfit of each candidate scale set, `(candidates,)`.
+
+    The later formations' four points, placed with the candidate's scale ratios `rho`
+    (`(candidates, 3)`, `rho[:, 0] = 1`), must project onto their bearings, seen from
+    one of the first formation's P3P poses (see `_overhead_candidates`). Sum of squared
+    chordal bearing errors (~ rad^2), best of the P3P solutions."""
+    poses, valid, unit, bearings, seen = view
 
     def misfit(rho):
-        X = unit * rho[step_of][:, None]
+        X = unit * rho[_CONCURRENT_STEP_OF][:, None]
 
         def one(wxyz_xyz, valid):
             T = jaxlie.SE3(wxyz_xyz)
@@ -220,10 +293,9 @@ def _overhead_misfit(obs: CycleObservations, P: Float[Array, "3 3 3"], rho):
             cost = jnp.sum(jnp.where(seen, chord, 0.0))
             return jnp.where(valid & front & jnp.isfinite(cost), cost, jnp.inf)
 
-        return jnp.min(jax.vmap(one)(sol.poses.wxyz_xyz, sol.valid))
+        return jnp.min(jax.vmap(one)(poses, valid))
 
-    ok = jnp.all(seen[:3])
-    return jnp.where(ok, jax.vmap(misfit)(rho), 0.0)
+    return jnp.where(jnp.any(valid), jax.vmap(misfit)(rho), 0.0)
 
 
 def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
@@ -231,19 +303,30 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
 
     Four distances fix three scales with one degree of freedom to spare, and the
     quadratic ratio equations often leave two branches that both fit the odometry
-    within its noise (~4% of the paper's cycles). Among the branches whose odometry
-    chi-square is plausible, the one the overhead camera agrees with wins; the others'
-    poses would be a wrong local minimum for any refinement."""
+    within its noise (~4% of the paper's cycles); on unfavourable moves neither root is
+    near the truth, and the odometry alone hardly constrains the ratios. Candidates: every
+    combination of the quadratics' roots, and the ratios each P3P pose of the overhead
+    camera implies; each starts a few Gauss-Newton steps on the odometry, and is also kept
+    as is with only its overall scale fitted. The candidate that best fits the odometry
+    and the overhead bearings together wins; the others' poses would be a wrong local
+    minimum for any refinement."""
     d, w_abs = obs.odometry, _odometry_weights(obs)
     w = w_abs / jnp.max(w_abs)
     # moves: [C2 0->1, C3 0->1, C2 1->2, C3 1->2]
     r01, ok01 = _ratio_candidates(P[0, 1:], P[1, 1:], d[:2], w[:2])
     r12, ok12 = _ratio_candidates(P[1, 1:], P[2, 1:], d[2:], w[2:])
     combos = np.array(list(it.product(range(3), range(3))))
-    rho = jnp.stack(
-        [jnp.ones(len(combos)), r01[combos[:, 0]], r01[combos[:, 0]] * r12[combos[:, 1]]],
-        axis=1,
-    )
+    view = _overhead_candidates(obs, P)
+    poses_overhead, rho_overhead = _overhead_ratios(view)
+    view = (poses_overhead, *view[1:])  # score every candidate from the refined poses
+    rho = jnp.concatenate([
+        jnp.stack(
+            [jnp.ones(len(combos)), r01[combos[:, 0]], r01[combos[:, 0]] * r12[combos[:, 1]]],
+            axis=1,
+        ),
+        rho_overhead,
+    ])
+    allowed = jnp.concatenate([ok01[combos[:, 0]] & ok12[combos[:, 1]], view[1]])
     starts, movers = move_start_step("concurrent"), moving_robot("concurrent")
 
     def init_and_refine(rho):
@@ -255,21 +338,25 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
         )
         s0 = jnp.sum(w * d * q) / jnp.maximum(jnp.sum(w * q * q), 1e-30)
         s = s0 * rho
+        res, _ = _concurrent_cost_and_jac(s, P, d, w)
+        fixed = (s, jnp.sum(res**2))
         for _ in range(6):
             res, J = _concurrent_cost_and_jac(s, P, d, w)
             step = _solve3(J.T @ J + 1e-12 * jnp.eye(3, dtype=s.dtype), -J.T @ res)
             s_new = s + step
             s = jnp.where(jnp.all(s_new > 0), s_new, s)
         res, _ = _concurrent_cost_and_jac(s, P, d, w)
-        return s, jnp.sum(res**2)
+        return jnp.stack([fixed[0], s]), jnp.stack([fixed[1], jnp.sum(res**2)])
 
     s_all, cost = jax.vmap(init_and_refine)(rho)
-    allowed = ok01[combos[:, 0]] & ok12[combos[:, 1]] & jnp.all(s_all > 0, axis=1)
+    s_all, cost = s_all.reshape(-1, 3), cost.reshape(-1)
+    allowed = jnp.repeat(allowed, 2) & jnp.all(s_all > 0, axis=1)
     cost = jnp.where(allowed & jnp.isfinite(cost), cost, jnp.inf)
-    # Plausible: odometry chi-square (1 spare dof) below its 99.98% quantile (13.8).
-    plausible = cost * jnp.max(w_abs) <= 13.8
-    misfit = _overhead_misfit(obs, P, s_all / s_all[:, :1])  # ratios to s0
-    score = jnp.where(plausible, misfit, jnp.inf)
+    # Both kinds of evidence in one chi-square-like score: the odometry in units of its
+    # sigma, the overhead bearings in units of a nominal angular sigma (the closed form
+    # does not know the camera's noise; only the order of magnitude matters here).
+    misfit = _overhead_misfit(view, s_all / s_all[:, :1])  # ratios to s0
+    score = cost * jnp.max(w_abs) + misfit / _NOMINAL_BEARING_SIGMA**2
     best = jnp.where(jnp.any(jnp.isfinite(score)), jnp.argmin(score), jnp.argmin(cost))
     scales = s_all[best]
     ok = jnp.isfinite(cost[best]) & jnp.all(jnp.isfinite(scales))
