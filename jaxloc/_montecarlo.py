@@ -51,9 +51,14 @@ def _mesh() -> Mesh:
 #: and an iterative solver's batch waits only for the slowest of these trials, not of the
 #: whole chunk (DESIGN §8).
 MICRO_BATCH = 64
+#: XLA options of a study's chunk program. XLA:CPU's newer fusion emitters take ~25% longer
+#: to compile a cycle trial (measured on the paper's scenario, chunk of 4096: 49 s -> 37 s
+#: concurrent, 34 s -> 30 s sequential) and run it no faster (6.3 s -> 5.2 s, 4.3 s ->
+#: 4.3 s per chunk), so the classic emitters compile it.
+CHUNK_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 
-@eqx.filter_jit
+@eqx.filter_jit(compiler_options=CHUNK_COMPILER_OPTIONS)
 def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
     mesh = _mesh()
     indices = start + jnp.arange(chunk_size)

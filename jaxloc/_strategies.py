@@ -262,7 +262,7 @@ def _overhead_ratios(view) -> tuple[Float[Array, "4 7"], Float[Array, "4 3"]]:
 
         rho0 = linear_ratios(T0)
         theta = jnp.concatenate([jnp.zeros(6, dtype), jnp.log(jnp.clip(rho0, 0.05, 20.0))])
-        for _ in range(3):
+        for _ in range(2):
             theta = step(theta)
         T = jaxlie.manifold.rplus(jaxlie.SE3(T0), theta[:6]).wxyz_xyz.astype(dtype)
         return T, jnp.concatenate([jnp.ones(1, dtype), jnp.exp(theta[6:])])
