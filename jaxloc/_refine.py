@@ -45,7 +45,8 @@ from ._strategies import CycleEstimate
 #: optimistix's Levenberg--Marquardt / Gauss--Newton on the same residuals.
 CYCLE_SOLVERS = ("lm", "optx-lm", "optx-gn")
 #: Predicted decrease of the whitened cost (chi-square units) below which a step of the
-#: batched Levenberg--Marquardt counts as converged.
+#: batched Levenberg--Marquardt counts as converged, at the default tolerances
+#: (`rtol = atol = 1e-6`); it scales with the square of the tighter one.
 _NEGLIGIBLE_DECREASE = 1e-4
 
 
@@ -108,13 +109,15 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
     step, by doubling factors after rejected ones). Converged when a step (accepted, or
     rejected at negligible damping: the minimum within rounding) is below
     `atol + rtol * max |position|` (m, rad), or its predicted cost decrease `-g . delta`
-    is below 1e-4 (a step of ~1e-2 standard deviations).
+    is below `1e-4 * (min(rtol, atol) / 1e-6)^2` (at the default tolerances, a step of
+    ~1e-2 standard deviations).
 
     An inactive problem (`active` False: a failed start) takes no step, so under `vmap`
     it does not prolong its batch's loop. Returns `(T_place, T_over, num_steps,
     converged)`.
     """
     dtype = T0_place.dtype
+    decrease_tol = _NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2
 
     def model(T_place, T_over):
         r, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
@@ -148,7 +151,7 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
         # deviations) is negligible. Gauss-Newton converges only linearly along weakly
         # observed directions (a flat floor), where a step-size test alone takes hundreds
         # of iterations to pass.
-        small = small | (-jnp.sum(g * delta) <= _NEGLIGIBLE_DECREASE)
+        small = small | (-jnp.sum(g * delta) <= decrease_tol)
         # A rejected step that is already negligible: the minimum within rounding.
         done = (accept | (lam < 1e-3)) & finite & small
         pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
