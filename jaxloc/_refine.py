@@ -350,8 +350,8 @@ def refine_cycle(
     `"num_steps"`, `"rms_pixel_error"` (px, over all measured pixels), `"chi2"` (the
     final sum of squared whitened residuals) and `"dof"` (residuals minus unknowns), and
     updates `"odometry_rms"` (m). Under the noise model `chi2 ~ chi-square(dof)`: a value
-    above its 99.9% quantile flags a wrong local minimum (a bad closed-form start; ~2% of
-    the concurrent strategy's paper-scenario cycles).
+    above its 99.9% quantile flags a wrong local minimum (a bad closed-form start; ~0.4%
+    of the concurrent strategy's paper-scenario cycles).
 
     Single cycle; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad`.
     """

@@ -12,11 +12,12 @@ cycle's world frame `W` (C1's body frame at the start), at metric scale.
   (weighted least squares). Six distinct points for the overhead camera.
 - **Concurrent** (3 steps): C1 stays, C2 and C3 move together twice. Every formation is
   solved in C1's frame, with its own scale. The three scales are fitted to the four
-  odometry distances: for each move, the two robots' distances fix the ratio of the
-  scales before and after through a quadratic with up to two positive roots; every
-  combination of roots (plus the equal-scale guess) starts a few Gauss-Newton steps, and
-  the lowest cost wins (a single local fit falls into wrong minima on the paper's own
-  geometry). Seven distinct points for the overhead camera.
+  odometry distances and the overhead camera's bearings: candidate scale ratios come
+  from the odometry (for each move, the two robots' distances give a quadratic with up
+  to two positive roots) and from the overhead camera (the ratios its seven bearings
+  imply, from each P3P pose of the first formation); the candidate that fits the
+  odometry and the bearings best together wins (a single local fit falls into wrong
+  minima on the paper's own geometry). Seven distinct points for the overhead camera.
 """
 
 import itertools as it
@@ -278,8 +279,8 @@ def _overhead_misfit(view, rho):
 
     The later formations' four points, placed with the candidate's scale ratios `rho`
     (`(candidates, 3)`, `rho[:, 0] = 1`), must project onto their bearings, seen from
-    one of the first formation's P3P poses (see `_overhead_candidates`). Sum of squared
-    chordal bearing errors (~ rad^2), best of the P3P solutions."""
+    one of the camera poses in `view` (those of `_overhead_ratios`). Sum of squared
+    chordal bearing errors (~ rad^2), best over the poses."""
     poses, valid, unit, bearings, seen = view
 
     def misfit(rho):
