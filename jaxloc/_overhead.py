@@ -42,6 +42,9 @@ from ._solvers.p3p import p3p
 #: Triplets solved by P3P (the best-conditioned ones), and the polish's iteration limit.
 _NUM_TRIPLETS = 4
 _POLISH_STEPS = 5
+# A candidate is another minimum (the robust solver's runner-up) when its camera centre
+# is farther from the winner's than this fraction of the RMS camera-to-point distance.
+_DISTINCT_CENTRE = 0.3
 
 
 def _normalize_rows(v: Float[Array, "n 3"]) -> Float[Array, "n 3"]:
@@ -200,6 +203,16 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
     num_valid = jnp.sum(good).astype(jnp.int32)
     start = jnp.sum(jnp.where(best[:, None], params, 0.0), axis=0)
     pose = _polish(jaxlie.SE3(start), X, b, w, _POLISH_STEPS)
+    # The runner-up: the best candidate whose camera centre is far from the winner's
+    # (another local minimum, e.g. the mirror pose of nearly coplanar points).
+    centres = jax.vmap(lambda p: jaxlie.SE3(p).inverse().translation())(params)
+    best_centre = jnp.sum(jnp.where(best[:, None], centres, 0.0), axis=0)
+    depth2 = jnp.sum(w * jnp.sum((Xs - best_centre[None]) ** 2, -1)) / jnp.maximum(jnp.sum(w), 1)
+    far = jnp.sum((centres - best_centre[None]) ** 2, -1) > _DISTINCT_CENTRE**2 * depth2
+    other_costs = jnp.where(far, costs, jnp.inf)
+    other = jnp.arange(costs.shape[0]) == jnp.argmin(other_costs)
+    runner_up = jnp.sum(jnp.where(other[:, None], params, 0.0), axis=0)
+    runner_up_ok = jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(runner_up))
 
     planarity, collinearity = point_spread(X, use)
     count = jnp.sum(use)
@@ -227,6 +240,10 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
         "collinearity": collinearity,
         "num_valid_candidates": num_valid,
         "rms_angular_error": rms(angular_errors(pose, X, b), use),
+        "runner_up_pose": jnp.where(
+            success & runner_up_ok, runner_up, identity_like(dtype).wxyz_xyz
+        ),
+        "runner_up_ok": success & runner_up_ok,
     }
     return PoseSolution(pose=pose, result=result, stats=stats)
 

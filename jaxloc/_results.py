@@ -28,6 +28,10 @@ class RESULTS(optx.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "The refined fit's chi-square is implausibly large for the noise model "
         "(99.9% quantile): a wrong local minimum or an outlier measurement."
     )
+    ambiguous = (
+        "Two distinct minima fit the measurements about equally well (chi-square within "
+        "4): the data do not tell which is the pose; the lower one is returned."
+    )
 
 
 def status_code(result: RESULTS) -> Int[Array, "..."]:

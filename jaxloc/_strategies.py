@@ -18,6 +18,8 @@ cycle's world frame `W` (C1's body frame at the start), at metric scale.
   imply, from each P3P pose of the first formation); the candidate that fits the
   odometry and the bearings best together wins (a single local fit falls into wrong
   minima on the paper's own geometry). Seven distinct points for the overhead camera.
+  The runner-up scale candidate and the overhead solver's runner-up pose are kept in
+  the estimate's `stats` as starts for a multi-start refinement.
 """
 
 import itertools as it
@@ -57,7 +59,12 @@ class CycleEstimate(eqx.Module):
     - `stats`: diagnostics: `"min_angle"` (rad, smallest triangle angle over the steps),
       `"odometry_rms"` (m, odometry residual after the scale fit), and the overhead
       solver's `"planarity"`, `"collinearity"`, `"num_valid_candidates"`,
-      `"rms_angular_error"`.
+      `"rms_angular_error"`. The concurrent strategy's `"robust"` estimate also carries
+      the closed form's two other local minima, starts for [`jaxloc.refine_cycle`][]'s
+      multi-start: `"alternative_scales"` `(2, steps)` (the runner-up scale candidate,
+      and the winning scales again), `"alternative_T_world_overhead"` `(2, 7)` (the
+      overhead pose for the runner-up scales, and the overhead solver's runner-up pose
+      for the winning scales) and `"alternative_ok"` `(2,)`.
     """
 
     poses: CyclePoses
@@ -218,6 +225,9 @@ def _overhead_candidates(obs: CycleObservations, P: Float[Array, "3 3 3"]):
 _NOMINAL_BEARING_SIGMA = 3e-3
 # Formation (step) of each of the concurrent strategy's seven distinct points.
 _CONCURRENT_STEP_OF = np.array([0, 0, 0, 1, 1, 2, 2])
+# Two concurrent scale candidates are distinct minima when some formation's scale
+# differs by more than this (log ratio, ~10%); noise moves a scale by a few percent.
+_DISTINCT_LOG_SCALE = 0.1
 
 
 def _overhead_ratios(view) -> tuple[Float[Array, "4 7"], Float[Array, "4 3"]]:
@@ -310,7 +320,9 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     camera implies; each starts a few Gauss-Newton steps on the odometry, and is also kept
     as is with only its overall scale fitted. The candidate that best fits the odometry
     and the overhead bearings together wins; the others' poses would be a wrong local
-    minimum for any refinement."""
+    minimum for any refinement. Returns `(scales, ok, odometry_rms, runner_up,
+    runner_up_ok)`: `runner_up` is the best-scoring candidate whose scales differ from
+    the winner's by more than `_DISTINCT_LOG_SCALE`, another start for a refinement."""
     d, w_abs = obs.odometry, _odometry_weights(obs)
     w = w_abs / jnp.max(w_abs)
     # moves: [C2 0->1, C3 0->1, C2 1->2, C3 1->2]
@@ -358,10 +370,18 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     # does not know the camera's noise; only the order of magnitude matters here).
     misfit = _overhead_misfit(view, s_all / s_all[:, :1])  # ratios to s0
     score = cost * jnp.max(w_abs) + misfit / _NOMINAL_BEARING_SIGMA**2
-    best = jnp.where(jnp.any(jnp.isfinite(score)), jnp.argmin(score), jnp.argmin(cost))
+    score = jnp.where(jnp.any(jnp.isfinite(score)), score, cost)
+    best = jnp.argmin(score)
     scales = s_all[best]
     ok = jnp.isfinite(cost[best]) & jnp.all(jnp.isfinite(scales))
     scales = jnp.where(ok, scales, 1.0)
+    # The runner-up: the best-scoring candidate whose scales differ from the winner's by
+    # more than `_DISTINCT_LOG_SCALE` (another local minimum for a refinement to try).
+    gap = jnp.max(jnp.abs(jnp.log(jnp.abs(s_all) / scales[None])), axis=1)
+    other_score = jnp.where(gap > _DISTINCT_LOG_SCALE, score, jnp.inf)
+    other = jnp.argmin(other_score)
+    runner_up_ok = ok & jnp.isfinite(other_score[other]) & jnp.all(jnp.isfinite(s_all[other]))
+    runner_up = jnp.where(runner_up_ok, s_all[other], scales)
     lengths = jnp.stack(
         [
             _distance(scales[a + 1] * P[a + 1, r], scales[a] * P[a, r])
@@ -369,7 +389,7 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
         ]
     )
     rms = jnp.sqrt(jnp.mean((lengths - d) ** 2))
-    return scales, ok, rms
+    return scales, ok, rms, runner_up, runner_up_ok
 
 
 def _overhead_problem(obs: CycleObservations, positions: Float[Array, "steps 3 3"]):
@@ -439,7 +459,9 @@ def localize_cycle_methods(
     else:
         sols = [mutual_localization(observations.mutual[k], 0, throw=False) for k in range(3)]
         P = jnp.stack([s.T_ref_body.translation() for s in sols])
-        scales, scale_ok, odo_rms = _fit_concurrent_scales(observations, P)
+        scales, scale_ok, odo_rms, runner_up, runner_up_ok = _fit_concurrent_scales(
+            observations, P
+        )
         T = [_scale_translations(s.T_ref_body, scales[k]) for k, s in enumerate(sols)]
 
     T_world_body = jaxlie.SE3(jnp.stack([Tk.wxyz_xyz for Tk in T]))
@@ -454,7 +476,33 @@ def localize_cycle_methods(
     )
     estimates = []
     for method in methods:
-        pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
+        runner_up_stats = {}
+        if strategy == "concurrent" and method == "robust":
+            # The runner-up scales' poses too (one batched solve), for a refinement to
+            # start from both (`jaxloc.refine_cycle`).
+            alt_points, _, _ = _overhead_problem(observations, runner_up[:, None, None] * P)
+            both = jax.vmap(
+                lambda pts: solve_overhead_pose(pts, bearings, mask, method=method, throw=False)
+            )(jnp.stack([points, alt_points]))
+            pose_sol = jax.tree.map(lambda x: x[0], both)
+            pose_sol.stats.pop("runner_up_pose")
+            pose_sol.stats.pop("runner_up_ok")
+            mirror = jaxlie.SE3(both.stats["runner_up_pose"][0]).inverse().wxyz_xyz
+            runner_up_stats = {
+                # The closed form's other local minima, for a refinement to start from
+                # (`jaxloc.refine_cycle`): the runner-up scales with their own overhead
+                # pose; the winning scales with the overhead solver's runner-up pose.
+                "alternative_scales": jnp.stack([runner_up, scales]),
+                "alternative_T_world_overhead": jnp.stack(
+                    [jaxlie.SE3(both.pose.wxyz_xyz[1]).inverse().wxyz_xyz, mirror]
+                ),
+                "alternative_ok": jnp.stack([
+                    runner_up_ok & (both.result == RESULTS.successful)[1],
+                    both.stats["runner_up_ok"][0],
+                ]),
+            }
+        else:
+            pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
         T_world_overhead = pose_sol.pose.inverse()
         result = pose_sol.result
         result = RESULTS.where(scale_ok, result, RESULTS.scale_unobservable)
@@ -463,6 +511,7 @@ def localize_cycle_methods(
         stats = dict(pose_sol.stats)
         stats["min_angle"] = jnp.min(jnp.stack([s.stats["min_angle"] for s in sols]))
         stats["odometry_rms"] = odo_rms
+        stats.update(runner_up_stats)
         poses = CyclePoses(T_world_body, T_world_overhead)
         estimates.append(CycleEstimate(poses, scales, result, stats))
     return estimates
