@@ -88,6 +88,8 @@ from ._markers import (
     read_image as read_image,
 )
 from ._montecarlo import (
+    balanced_chunk_size as balanced_chunk_size,
+    MICRO_BATCH as MICRO_BATCH,
     precompile as precompile,
     run_chunk as run_chunk,
     run_study as run_study,

@@ -160,7 +160,7 @@ def _enable_compile_cache() -> str | None:
 
 
 def _run(scenarios: dict, args, title: str) -> int:
-    from ._montecarlo import precompile, run_study, stream_study
+    from ._montecarlo import balanced_chunk_size, precompile, run_study, stream_study
     from ._stats import summarize
     from ._trial import METHODS
 
@@ -177,9 +177,16 @@ def _run(scenarios: dict, args, title: str) -> int:
     if args.stream and args.plot:
         raise ValueError("--plot needs every trial's errors; it cannot be used with --stream.")
     studies = {}
+    chunk_size = args.chunk_size or balanced_chunk_size(args.trials)
+    if args.out is not None and args.chunk_size is None:
+        for strategy in scenarios:
+            manifest = os.path.join(args.out, strategy, "study.json")
+            if os.path.exists(manifest):  # resume with the chunks already on disk
+                with open(manifest) as f:
+                    chunk_size = int(json.load(f)["chunk_size"])
     t_start = time.perf_counter()
     if len(scenarios) > 1:
-        precompile(list(scenarios.values()), args.chunk_size, methods)
+        precompile(list(scenarios.values()), chunk_size, methods)
         report["compile_seconds"] = time.perf_counter() - t_start
         print(f"\n(compiled {len(scenarios)} studies in parallel: "
               f"{report['compile_seconds']:.1f} s)")
@@ -188,7 +195,7 @@ def _run(scenarios: dict, args, title: str) -> int:
         out_dir = None if args.out is None else f"{args.out}/{strategy}"
         kwargs = dict(
             seed=args.seed,
-            chunk_size=args.chunk_size,
+            chunk_size=chunk_size,
             methods=methods,
             out_dir=out_dir,
             progress=not args.no_progress,
@@ -302,7 +309,12 @@ def main(argv: list[str] | None = None) -> int:
     def study_args(p):
         p.add_argument("--trials", type=int, default=10_000, help="trials per strategy")
         p.add_argument("--seed", type=int, default=0)
-        p.add_argument("--chunk-size", type=int, default=4096)
+        p.add_argument(
+            "--chunk-size",
+            type=int,
+            help="trials per compiled call (default: the fewest chunks of at most 4096 "
+            "trials with the least padding; a resumed --out study keeps its own)",
+        )
         p.add_argument("--json", metavar="FILE", help="write every number as JSON")
         p.add_argument("--plot", metavar="FILE", help="error histograms per camera (PNG)")
         p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable)")
@@ -334,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "trials", 1) <= 0:
         parser.error(f"--trials must be positive; got {args.trials}")
-    if getattr(args, "chunk_size", 1) <= 0:
+    if getattr(args, "chunk_size", None) is not None and args.chunk_size <= 0:
         parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
     _enable_compile_cache()
     try:

@@ -605,8 +605,9 @@ def localize_images(
     (see [`jaxloc.detect_team_images`][]) or the closed-form estimate fails (its status is
     named), or if the refined fit is statistically inconsistent with `team.pixel_sigma`
     (`inconsistent_fit`: an outlier detection, a wrong camera file or a too small sigma).
-    If the refinement fails otherwise (e.g. iteration limit), the closed-form estimate is
-    reported and the reason recorded in `notes`.
+    If the refinement is `ambiguous` (two poses fit about equally well), the better one is
+    reported and `notes` says so. If the refinement fails otherwise (e.g. iteration
+    limit), the closed-form estimate is reported and the reason recorded in `notes`.
     """
     detections = detect_team_images(team, images)
     observations = observations_from_detections(team, detections)
@@ -625,6 +626,15 @@ def localize_images(
         rcode = int(status_code(refined.result))
         if rcode == 0:
             estimate, method = refined, "refined"
+        elif rcode == int(status_code(RESULTS.ambiguous)):
+            estimate, method = refined, "refined"
+            st = refined.stats
+            notes.append(
+                f"Ambiguous: another pose, more than 10 cm away, fits the images almost as "
+                f"well (chi-square {float(st['runner_up_chi2']):.1f} against "
+                f"{float(st['chi2']):.1f}); the better one is reported. Move the robots "
+                "to a less symmetric formation to tell them apart."
+            )
         elif rcode == int(status_code(RESULTS.inconsistent_fit)):
             # The measurements do not fit one geometry at the stated noise: a wrong blob
             # taken for a marker, a wrong camera file, or `pixel_sigma` too small. The

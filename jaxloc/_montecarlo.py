@@ -76,6 +76,26 @@ def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[
     )
 
 
+def balanced_chunk_size(n_trials: int, max_chunk_size: int = 4096) -> int:
+    """Chunk size that covers `n_trials` in the fewest chunks of about `max_chunk_size`
+    trials or fewer, with the least padding: a study always computes whole chunks, so
+    10,000 trials in chunks of 4096 would compute 12,288. Rounded up to a multiple of
+    `MICRO_BATCH` times the device count (each device's `lax.map` then has no remainder
+    step, which would compile the trial a second time); e.g. 10,000 trials on 2 devices:
+    3 chunks of 3456."""
+    if n_trials <= 0 or max_chunk_size <= 0:
+        raise ValueError(
+            f"`n_trials` and `max_chunk_size` must be positive; got {n_trials!r}, "
+            f"{max_chunk_size!r}."
+        )
+    quantum = MICRO_BATCH * jax.device_count()
+    if max_chunk_size < quantum:
+        return max_chunk_size
+    n_chunks = -(-n_trials // max_chunk_size)
+    per_chunk = -(-n_trials // n_chunks)
+    return -(-per_chunk // quantum) * quantum
+
+
 def _chunk_inputs(scenario: Scenario, seed: int, start: int, chunk_size: int, methods):
     n_dev = jax.device_count()
     padded = -(-chunk_size // n_dev) * n_dev

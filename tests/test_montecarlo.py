@@ -254,6 +254,22 @@ def test_cli_rejects_bad_input(tmp_path, capsys):
     assert "sideways" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["table1", "--trials", "0"])
+    with pytest.raises(SystemExit):
+        main(["table1", "--chunk-size", "0"])
+    assert "--chunk-size must be positive; got 0" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("n_trials", [1, 100, 4096, 4097, 10_000, 1_000_000])
+def test_balanced_chunk_size_covers_the_trials_with_little_padding(n_trials):
+    quantum = jaxloc.MICRO_BATCH * jax.device_count()
+    chunk = jaxloc.balanced_chunk_size(n_trials)
+    n_chunks = -(-n_trials // chunk)
+    assert chunk % quantum == 0
+    assert n_chunks == -(-n_trials // 4096)  # as few chunks as chunks of 4096 would need
+    assert n_chunks * chunk - n_trials < n_chunks * quantum  # padding below a quantum each
+    assert jaxloc.balanced_chunk_size(n_trials, 10) == 10  # below one quantum: as asked
+    with pytest.raises(ValueError, match="max_chunk_size"):
+        jaxloc.balanced_chunk_size(n_trials, 0)
 
 
 def test_cli_cameras(capsys):
