@@ -585,6 +585,20 @@ def bench_joint(quick: bool, report: dict) -> None:
     ref = refine(obs, est)
     rate = B / float(np.median(times))
     status = np.asarray(jaxloc.status_code(ref.result))
+    # As jaxloc's studies run it: `lax.map` over `vmap`-ed batches of 64, so a rare
+    # straggler (a cycle needing all `max_steps` iterations) holds up 64 cycles, not all.
+    mapped = jax.jit(
+        lambda o, e: jax.lax.map(
+            lambda a: jaxloc.refine_cycle(a[0], scenario, a[1], throw=False), (o, e),
+            batch_size=64,
+        )
+    )
+    t = time.perf_counter()
+    jax.block_until_ready(mapped(obs, est))
+    mapped_compile_s = time.perf_counter() - t
+    mapped_times = timeit(lambda: jax.block_until_ready(mapped(obs, est)), 0.5 if quick else 2.0, 2)
+    mapped_rate = B / float(np.median(mapped_times))
+    steps = np.asarray(ref.stats["num_steps"])
 
     def res(theta, T0p, T0o, data):
         return whitened(*_unpack(theta, T0p, T0o), data, scenario, strategy)
@@ -651,6 +665,16 @@ def bench_joint(quick: bool, report: dict) -> None:
             "trials_per_s": rate,
             "compile_s": compile_s,
             "fraction_ok": float((status == 0).mean()),
+            "num_steps_median_p99_max": [
+                float(np.median(steps)), float(np.percentile(steps, 99)), int(steps.max())
+            ],
+        },
+        "refine_cycle_mapped": {
+            "solver": "lm (default)",
+            "batch": B,
+            "layout": "lax.map over vmap-ed batches of 64 (as run_study)",
+            "trials_per_s": mapped_rate,
+            "compile_s": mapped_compile_s,
         },
         "scipy_least_squares": scipy_rows,
         "note": "scipy: default method 'trf' and tolerances (1e-8), residuals = "
@@ -855,7 +879,9 @@ def targets(report: dict) -> list[dict]:
     jr_ = report.get("joint_refinement")
     if jr_:
         fastest = max(v["trials_per_s"] for v in jr_["scipy_least_squares"].values())
-        ratio = jr_["refine_cycle"]["trials_per_s"] / fastest
+        ratio = max(
+            jr_["refine_cycle"]["trials_per_s"], jr_["refine_cycle_mapped"]["trials_per_s"]
+        ) / fastest
         out.append(
             {
                 "target": "refine_cycle >= 50x scipy.optimize.least_squares loop (faster variant)",
@@ -937,7 +963,12 @@ def print_table(report: dict) -> None:
     if jr_:
         print(
             f"{'joint refinement: refine_cycle jit(vmap)':<62}"
-            f"{jr_['refine_cycle']['trials_per_s']:>12,.0f} trials/s"
+            f"{jr_['refine_cycle']['trials_per_s']:>12,.0f} trials/s (steps median, p99, "
+            f"max {jr_['refine_cycle']['num_steps_median_p99_max']})"
+        )
+        print(
+            f"{'joint refinement: refine_cycle lax.map of vmap-ed 64':<62}"
+            f"{jr_['refine_cycle_mapped']['trials_per_s']:>12,.0f} trials/s"
         )
         for k, v in jr_["scipy_least_squares"].items():
             print(

@@ -10,6 +10,7 @@ matrices (DESIGN §8). [`map_problems`][] batches any single-problem function ov
 devices in cache-sized `vmap` steps.
 """
 
+import functools as ft
 import itertools
 from collections.abc import Callable
 
@@ -146,8 +147,27 @@ def _select_triplets(Xt, bt, tri_ok, k: int):
     return jnp.stack(hots)
 
 
-@jax.jit
-def _robust_pose(X, bw, mask) -> PoseSolution:
+def _runner_up(params, costs, best, Xs, w, success, dtype) -> dict:
+    """The robust solver's runner-up: the best candidate whose camera centre is far from
+    the winner's (another local minimum, e.g. the mirror pose of nearly coplanar points),
+    as `{"runner_up_pose": (7,), "runner_up_ok": ()}` (identity and False if none)."""
+    centres = jax.vmap(lambda p: jaxlie.SE3(p).inverse().translation())(params)
+    best_centre = jnp.sum(jnp.where(best[:, None], centres, 0.0), axis=0)
+    depth2 = jnp.sum(w * jnp.sum((Xs - best_centre[None]) ** 2, -1)) / jnp.maximum(jnp.sum(w), 1)
+    far = jnp.sum((centres - best_centre[None]) ** 2, -1) > _DISTINCT_CENTRE**2 * depth2
+    other_costs = jnp.where(far, costs, jnp.inf)
+    other = jnp.arange(costs.shape[0]) == jnp.argmin(other_costs)
+    runner_up = jnp.sum(jnp.where(other[:, None], params, 0.0), axis=0)
+    runner_up_ok = jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(runner_up))
+    ok = success & runner_up_ok
+    return {
+        "runner_up_pose": jnp.where(ok, runner_up, identity_like(dtype).wxyz_xyz),
+        "runner_up_ok": ok,
+    }
+
+
+@ft.partial(jax.jit, static_argnames="runner_up")
+def _robust_pose(X, bw, mask, runner_up: bool = False) -> PoseSolution:
     dtype = X.dtype
     eps = jnp.finfo(dtype).eps
     n = X.shape[0]
@@ -203,17 +223,6 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
     num_valid = jnp.sum(good).astype(jnp.int32)
     start = jnp.sum(jnp.where(best[:, None], params, 0.0), axis=0)
     pose = _polish(jaxlie.SE3(start), X, b, w, _POLISH_STEPS)
-    # The runner-up: the best candidate whose camera centre is far from the winner's
-    # (another local minimum, e.g. the mirror pose of nearly coplanar points).
-    centres = jax.vmap(lambda p: jaxlie.SE3(p).inverse().translation())(params)
-    best_centre = jnp.sum(jnp.where(best[:, None], centres, 0.0), axis=0)
-    depth2 = jnp.sum(w * jnp.sum((Xs - best_centre[None]) ** 2, -1)) / jnp.maximum(jnp.sum(w), 1)
-    far = jnp.sum((centres - best_centre[None]) ** 2, -1) > _DISTINCT_CENTRE**2 * depth2
-    other_costs = jnp.where(far, costs, jnp.inf)
-    other = jnp.arange(costs.shape[0]) == jnp.argmin(other_costs)
-    runner_up = jnp.sum(jnp.where(other[:, None], params, 0.0), axis=0)
-    runner_up_ok = jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(runner_up))
-
     planarity, collinearity = point_spread(X, use)
     count = jnp.sum(use)
     result = RESULTS.where(
@@ -240,11 +249,9 @@ def _robust_pose(X, bw, mask) -> PoseSolution:
         "collinearity": collinearity,
         "num_valid_candidates": num_valid,
         "rms_angular_error": rms(angular_errors(pose, X, b), use),
-        "runner_up_pose": jnp.where(
-            success & runner_up_ok, runner_up, identity_like(dtype).wxyz_xyz
-        ),
-        "runner_up_ok": success & runner_up_ok,
     }
+    if runner_up:
+        stats.update(_runner_up(params, costs, best, Xs, w, success, dtype))
     return PoseSolution(pose=pose, result=result, stats=stats)
 
 
@@ -256,6 +263,7 @@ def solve_overhead_pose(
     method: str = "robust",
     throw: bool = True,
     refine: Callable[..., PoseSolution] | None = None,
+    runner_up: bool = False,
 ) -> PoseSolution:
     r"""Pose `T_cam_world` of the overhead camera from world points and their bearings.
 
@@ -285,6 +293,10 @@ def solve_overhead_pose(
         `refine(solution, points_world, bearings, mask)` with the initial
         [`jaxloc.PoseSolution`][] and the sanitized inputs (`mask` a boolean `(n,)` array),
         it must return a `PoseSolution`. Called before `throw` is applied.
+    - `runner_up`: keyword only, `"robust"` only. Also return the best candidate far
+        from the solution (`stats["runner_up_pose"]`, `stats["runner_up_ok"]`): another
+        local minimum, e.g. the mirror pose of nearly coplanar points, for a multi-start
+        refinement (the concurrent strategy uses it).
 
     **Returns:** a [`jaxloc.PoseSolution`][]. `result` is `successful`,
     `nonfinite_observation` (NaN/inf in an unmasked input), `too_few_points` (fewer than 3
@@ -303,7 +315,7 @@ def solve_overhead_pose(
         X, b, m = check_inputs(
             points_world, bearings, mask, min_points=3, name="solve_overhead_pose"
         )
-        sol = _robust_pose(X, b, m)
+        sol = _robust_pose(X, b, m, runner_up)
     elif method == "paper":
         X, b, m = check_inputs(
             points_world, bearings, mask, min_points=6, name="solve_overhead_pose"

@@ -482,7 +482,9 @@ def localize_cycle_methods(
             # start from both (`jaxloc.refine_cycle`).
             alt_points, _, _ = _overhead_problem(observations, runner_up[:, None, None] * P)
             both = jax.vmap(
-                lambda pts: solve_overhead_pose(pts, bearings, mask, method=method, throw=False)
+                lambda pts: solve_overhead_pose(
+                    pts, bearings, mask, method=method, throw=False, runner_up=True
+                )
             )(jnp.stack([points, alt_points]))
             pose_sol = jax.tree.map(lambda x: x[0], both)
             pose_sol.stats.pop("runner_up_pose")

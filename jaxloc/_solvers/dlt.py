@@ -47,11 +47,12 @@ class PoseSolution(eqx.Module):
             directions of the returned pose's predicted points (unmasked points).
         - method `"paper"` also has `"rank_deficiency"` (ratio of the two smallest singular
             values of the normalized Eq. 6 system; near 1 means a >1-dimensional null space).
-        - method `"robust"` also has `"runner_up_pose"` (`wxyz_xyz`, `(7,)`, unpolished)
-            and `"runner_up_ok"`: the best-scoring candidate whose camera centre is more
-            than 0.3 RMS camera-to-point distances from the returned one's (another local
-            minimum, e.g. the mirror pose of nearly coplanar points; a start for a
-            multi-start refinement), identity and False if there is none.
+        - method `"robust"` with `runner_up=True` also has `"runner_up_pose"`
+            (`wxyz_xyz`, `(7,)`, unpolished) and `"runner_up_ok"`: the best-scoring
+            candidate whose camera centre is more than 0.3 RMS camera-to-point distances
+            from the returned one's (another local minimum, e.g. the mirror pose of
+            nearly coplanar points; a start for a multi-start refinement), identity and
+            False if there is none.
     """
 
     pose: jaxlie.SE3
