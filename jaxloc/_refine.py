@@ -51,8 +51,12 @@ _NEGLIGIBLE_DECREASE = 1e-4
 #: Two distinct converged minima whose costs differ by less than this (chi-square units,
 #: a likelihood ratio below e^2 ~ 7) make a multi-start refinement `ambiguous`.
 _AMBIGUITY_MARGIN = 4.0
-#: Steps of a multi-start refinement's first phase, where every start is refined.
+#: Steps of a multi-start refinement's first phase, where every start is refined (the
+#: whole refinement still takes at most `max_steps`).
 _MULTI_START_STEPS = 8
+#: Two converged solutions whose overhead cameras are farther apart than this (m) are
+#: distinct minima.
+_DISTINCT_MINIMUM = 0.1
 
 
 # --------------------------------------------------------------------------------------
@@ -289,14 +293,14 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
             centres = T_over[:, 4:]
             T_place, T_over = T_place[pick], T_over[pick]
             T_place, T_over, steps2, converged2 = _batched_lm(
-                T_place, T_over, lm_data, lm_scenario, strategy, max(max_steps - n_first, 1),
+                T_place, T_over, lm_data, lm_scenario, strategy, max_steps - n_first,
                 rtol, atol, active & ~converged1[pick],
             )
             num_steps = jnp.max(steps1) + steps2
             converged = converged1[pick] | converged2
             # Another converged minimum, distinct from the solution (camera centres more
-            # than 10 cm apart): its cost decides whether the solution is ambiguous.
-            distinct = jnp.sum((centres - T_over[None, 4:]) ** 2, axis=-1) > 0.1**2
+            # than `_DISTINCT_MINIMUM` apart): its cost decides whether it is ambiguous.
+            distinct = jnp.sum((centres - T_over[None, 4:]) ** 2, axis=-1) > _DISTINCT_MINIMUM**2
             stats["start_picked"] = pick
             stats["runner_up_chi2"] = jnp.min(jnp.where(converged1 & distinct, chi2, jnp.inf))
         step = _implicit_step(strategy, T_place, T_over, data, scenario)

@@ -210,6 +210,24 @@ def test_team_file_errors(cycle, tmp_path):
         load_team(d / "bad.yaml")
 
 
+def test_ambiguous_refinement_reports_the_better_pose_with_a_note(cycle, monkeypatch):
+    """An `ambiguous` refinement (two distinct minima within chi-square 4) is reported, not
+    dropped, and the note gives both costs. The refinement is stubbed: it returns the
+    closed-form poses flagged `ambiguous` (real ambiguous cycles: tests/test_multistart)."""
+    import jaxloc._frontend as frontend
+
+    def ambiguous_refine(observations, scenario, estimate, **kwargs):
+        stats = dict(estimate.stats, chi2=jnp.asarray(11.5), runner_up_chi2=jnp.asarray(13.0))
+        return jaxloc.CycleEstimate(
+            estimate.poses, estimate.scales, jaxloc.RESULTS.ambiguous, stats
+        )
+
+    monkeypatch.setattr(frontend, "refine_cycle", ambiguous_refine)
+    res = localize_images(cycle["team"], refine=True, covariance=False)
+    assert res.method == "refined"
+    assert any("Ambiguous" in n and "13.0" in n and "11.5" in n for n in res.notes), res.notes
+
+
 @pytest.mark.slow
 def test_refined_with_covariance_from_images(cycle):
     res = localize_images(cycle["team"], refine=True)
