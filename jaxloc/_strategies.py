@@ -273,8 +273,7 @@ def _overhead_ratios(view) -> tuple[Float[Array, "4 7"], Float[Array, "4 3"]]:
 
         rho0 = linear_ratios(T0)
         theta = jnp.concatenate([jnp.zeros(6, dtype), jnp.log(jnp.clip(rho0, 0.05, 20.0))])
-        for _ in range(2):
-            theta = step(theta)
+        theta = jax.lax.fori_loop(0, 2, lambda _, theta: step(theta), theta)
         T = jaxlie.manifold.rplus(jaxlie.SE3(T0), theta[:6]).wxyz_xyz.astype(dtype)
         return T, jnp.concatenate([jnp.ones(1, dtype), jnp.exp(theta[6:])])
 
@@ -353,11 +352,14 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
         s = s0 * rho
         res, _ = _concurrent_cost_and_jac(s, P, d, w)
         fixed = (s, jnp.sum(res**2))
-        for _ in range(6):
+
+        def gauss_newton(_, s):
             res, J = _concurrent_cost_and_jac(s, P, d, w)
             step = _solve3(J.T @ J + 1e-12 * jnp.eye(3, dtype=s.dtype), -J.T @ res)
             s_new = s + step
-            s = jnp.where(jnp.all(s_new > 0), s_new, s)
+            return jnp.where(jnp.all(s_new > 0), s_new, s)
+
+        s = jax.lax.fori_loop(0, 6, gauss_newton, s)
         res, _ = _concurrent_cost_and_jac(s, P, d, w)
         return jnp.stack([fixed[0], s]), jnp.stack([fixed[1], jnp.sum(res**2)])
 
