@@ -15,6 +15,7 @@ use optimistix's implicit adjoint (the solve is never unrolled).
 """
 
 import functools as ft
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -22,6 +23,7 @@ import jax.flatten_util
 import jax.numpy as jnp
 import jaxlie
 import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
 
 from ._cycle_model import (
     _first_occurrence,
@@ -127,33 +129,20 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
     """
     dtype = T0_place.dtype
     decrease_tol = _NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2
+    eye = jnp.eye(6 * T0_place.shape[0], dtype=dtype)
 
-    def model(T_place, T_over):
-        r, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
-        return r, flat_jacobian(J)
-
-    r0, J0 = model(T0_place, T0_over)
-    init = (
-        jnp.array(0, jnp.int32), T0_place, T0_over, r0, J0,
-        jnp.array(1e-2, dtype), jnp.array(2.0, dtype), ~active, jnp.array(False),
-    )
-
-    def cond(state):
-        k, *_, done, _ = state
-        return (k < max_steps) & ~done
-
-    def body(state):
-        k, T_place, T_over, r, J, lam, nu, _, _ = state
+    # One model evaluation per iteration, at the top of the loop body, so that the model
+    # and its Jacobian are traced and compiled once: iteration 0 evaluates the start,
+    # iteration k >= 1 evaluates step k proposed by iteration k - 1 and accepts or
+    # rejects it; every iteration then proposes the next step from the current poses.
+    def propose(T_place, T_over, r, J, lam):
         H = J.T @ J
         g = J.T @ r
-        L = _cholesky(H + lam * jnp.eye(H.shape[0], dtype=dtype))
+        L = _cholesky(H + lam * eye)
         delta = -_cholesky_solve(L, g)
         finite = jnp.all(jnp.isfinite(delta))
         delta = jnp.where(finite, delta, 0.0)
-        T_place_new, T_over_new = _unpack(delta, T_place, T_over)
-        r_new, J_new = model(T_place_new, T_over_new)
-        cost, cost_new = jnp.sum(r * r), jnp.sum(r_new * r_new)
-        accept = finite & jnp.isfinite(cost_new) & (cost_new <= cost)
+        T_place_try, T_over_try = _unpack(delta, T_place, T_over)
         small = jnp.max(jnp.abs(delta)) <= atol + rtol * jnp.max(jnp.abs(T_place[:, 4:]))
         # Or statistically negligible: the step's predicted cost decrease (the residuals
         # are whitened, so in chi-square units, ~ the squared step in standard
@@ -161,24 +150,75 @@ def _batched_lm(T0_place, T0_over, data, scenario, strategy, max_steps, rtol, at
         # observed directions (a flat floor), where a step-size test alone takes hundreds
         # of iterations to pass.
         small = small | (-jnp.sum(g * delta) <= decrease_tol)
+        predicted = -2.0 * jnp.sum(g * delta) - jnp.sum(delta * (H @ delta))
+        return T_place_try, T_over_try, finite, small, predicted
+
+    m = data.mutual_pixels.size + data.overhead_pixels.size + data.odometry.shape[0]
+    false = jnp.array(False)
+    init = _LMState(
+        k=jnp.array(0, jnp.int32), T_place=T0_place, T_over=T0_over,
+        r=jnp.zeros(m, dtype), J=jnp.zeros((m, eye.shape[0]), dtype),
+        lam=jnp.array(1e-2, dtype), nu=jnp.array(2.0, dtype), done=~active, converged=false,
+        T_place_try=T0_place, T_over_try=T0_over, finite=jnp.array(True), small=false,
+        predicted=jnp.array(0.0, dtype),
+    )
+
+    def cond(s: _LMState):
+        return (s.k <= max_steps) & ~s.done
+
+    def body(s: _LMState):
+        r_new, J_new = _flat_jacobian_model(
+            s.T_place_try, s.T_over_try, data, scenario, strategy
+        )
+        first = s.k == 0
+        cost, cost_new = jnp.sum(s.r * s.r), jnp.sum(r_new * r_new)
+        accept = first | (s.finite & jnp.isfinite(cost_new) & (cost_new <= cost))
         # A rejected step that is already negligible: the minimum within rounding.
-        done = (accept | (lam < 1e-3)) & finite & small
+        done = ~first & (accept | (s.lam < 1e-3)) & s.finite & s.small
         pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
         # Nielsen's damping update: by the gain ratio (actual / predicted decrease) after
         # an accepted step, doubling factors after rejected ones. Fixed factors of 10
         # oscillate between acceptance and rejection on a curved, weakly observed valley.
-        predicted = -2.0 * jnp.sum(g * delta) - jnp.sum(delta * (H @ delta))
-        gain = (cost - cost_new) / jnp.where(predicted > 0, predicted, 1.0)
+        gain = (cost - cost_new) / jnp.where(s.predicted > 0, s.predicted, 1.0)
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
-        lam = jnp.clip(jnp.where(accept, lam * shrink, lam * nu), 1e-9, 1e12)
-        nu = jnp.where(accept, 2.0, 2.0 * nu)
-        return (
-            k + 1, pick(T_place_new, T_place), pick(T_over_new, T_over), pick(r_new, r),
-            pick(J_new, J), lam, nu, done, done,
+        lam = jnp.clip(jnp.where(accept, s.lam * shrink, s.lam * s.nu), 1e-9, 1e12)
+        lam = jnp.where(first, s.lam, lam)
+        nu = jnp.where(first | accept, 2.0, 2.0 * s.nu).astype(dtype)
+        T_place, T_over = pick(s.T_place_try, s.T_place), pick(s.T_over_try, s.T_over)
+        r, J = pick(r_new, s.r), pick(J_new, s.J)
+        T_place_try, T_over_try, finite, small, predicted = propose(T_place, T_over, r, J, lam)
+        return _LMState(
+            s.k + 1, T_place, T_over, r, J, lam, nu, done, done,
+            T_place_try, T_over_try, finite, small, predicted,
         )
 
-    k, T_place, T_over, *_, converged = jax.lax.while_loop(cond, body, init)
-    return T_place, T_over, k, converged
+    out = jax.lax.while_loop(cond, body, init)
+    return out.T_place, out.T_over, jnp.maximum(out.k - 1, 0), out.converged
+
+
+class _LMState(NamedTuple):
+    k: Int[Array, ""]  # iterations run; iteration k >= 1 decided on step k
+    T_place: Float[Array, "placements 7"]  # the current poses ...
+    T_over: Float[Array, "7"]
+    r: Float[Array, " m"]  # ... with their residuals and Jacobian
+    J: Float[Array, "m n"]
+    lam: Float[Array, ""]  # the damping the proposed step was solved with
+    nu: Float[Array, ""]
+    done: Bool[Array, ""]
+    converged: Bool[Array, ""]
+    T_place_try: Float[Array, "placements 7"]  # the proposed step ...
+    T_over_try: Float[Array, "7"]
+    finite: Bool[Array, ""]  # ... finite, small enough to stop, and its predicted decrease
+    small: Bool[Array, ""]
+    predicted: Float[Array, ""]
+
+
+def _flat_jacobian_model(T_place, T_over, data, scenario, strategy):
+    """Whitened residuals `(m,)` and their Jacobian `(m, 6 * placements - 6)` with
+    respect to the right perturbations of every placement but the gauge and of the
+    overhead camera (the LM's model)."""
+    r, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
+    return r, flat_jacobian(J)
 
 
 @ft.partial(jax.custom_jvp, nondiff_argnums=(0,))
