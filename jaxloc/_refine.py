@@ -55,7 +55,7 @@ _NEGLIGIBLE_DECREASE = 1e-4
 _AMBIGUITY_MARGIN = 4.0
 #: Steps of a multi-start refinement's first phase, where every start is refined (the
 #: whole refinement still takes at most `max_steps`).
-_MULTI_START_STEPS = 4
+_MULTI_START_STEPS = 6
 #: Two converged solutions whose overhead cameras are farther apart than this (m) are
 #: distinct minima.
 _DISTINCT_MINIMUM = 0.1
