@@ -214,9 +214,9 @@ class _LMState(NamedTuple):
 
 
 def _flat_jacobian_model(T_place, T_over, data, scenario, strategy):
-    """Whitened residuals `(m,)` and their Jacobian `(m, 6 * placements - 6)` with
-    respect to the right perturbations of every placement but the gauge and of the
-    overhead camera (the LM's model)."""
+    """Whitened residuals `(m,)` and their Jacobian `(m, 6 * placements)` with respect to
+    the right perturbations of every placement but the gauge (placement 0), then of the
+    overhead camera (the LM's model; the tangent layout of `_unpack`)."""
     r, J = whitened_with_jacobian(T_place, T_over, data, scenario, strategy)
     return r, flat_jacobian(J)
 
