@@ -336,7 +336,7 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
                 T_place, T_over, lm_data, lm_scenario, strategy, max_steps - n_first,
                 rtol, atol, active & ~converged1[pick],
             )
-            num_steps = jnp.max(steps1) + steps2
+            num_steps = steps1[pick] + steps2  # the returned solution's own steps
             converged = converged1[pick] | converged2
             # Another converged minimum, distinct from the solution (camera centres more
             # than `_DISTINCT_MINIMUM` apart): its cost decides whether it is ambiguous.
@@ -459,7 +459,8 @@ def refine_cycle(
     every robot at every step and of the overhead camera in `W`, metres. `scales` are
     copied from `estimate`. `result` is `estimate.result` if that failed (and then the
     poses are `estimate`'s), else the solver's promoted result. `stats` adds
-    `"num_steps"`, `"rms_pixel_error"` (px, over all measured pixels), `"chi2"` (the
+    `"num_steps"` (the returned solution's steps; at most `max_steps`, also for a
+    multi-start), `"rms_pixel_error"` (px, over all measured pixels), `"chi2"` (the
     final sum of squared whitened residuals) and `"dof"` (residuals minus unknowns), and
     updates `"odometry_rms"` (m). Under the noise model `chi2 ~ chi-square(dof)`: a value
     above its 99.9% quantile flags a wrong local minimum (`inconsistent_fit`).
