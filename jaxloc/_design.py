@@ -35,7 +35,7 @@ from ._formation import (
     Placement,
     placement_from_truth,
 )
-from ._montecarlo import CHUNK_COMPILER_OPTIONS, run_study
+from ._montecarlo import LARGE_PROGRAM_COMPILER_OPTIONS, run_study
 from ._refine import refine_cycle
 from ._results import RESULTS
 from ._scenario import Scenario
@@ -309,10 +309,10 @@ def _normalizer(criterion: str, value0):
     return lambda v: v - value0
 
 
-# The study chunk's XLA options (classic emitters, LLVM -O1): on a sequential design of 4
+# The large-program XLA options (classic emitters, LLVM -O1): on a sequential design of 4
 # starts x 8 draws x 30 iterations, compile 54 -> 43 s; the search runs as fast (0.6 s)
 # and ends at the same objective (to 1e-13 relative).
-@eqx.filter_jit(compiler_options=CHUNK_COMPILER_OPTIONS)
+@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
 def _search(
     formation0: Formation,
     starts: Formation,

@@ -51,20 +51,21 @@ def _mesh() -> Mesh:
 #: and an iterative solver's batch waits only for the slowest of these trials, not of the
 #: whole chunk (DESIGN §8).
 MICRO_BATCH = 64
-#: XLA options of a study's chunk program. XLA:CPU's newer fusion emitters take ~25% longer
+#: XLA options of jaxloc's large programs: a study's chunk (below) and the formation
+#: search (`jaxloc._design`). XLA:CPU's newer fusion emitters take ~25% longer
 #: to compile a cycle trial (measured on the paper's scenario, chunk of 4096: 49 s -> 37 s
 #: concurrent, 34 s -> 30 s sequential) and run it no faster (6.3 s -> 5.2 s, 4.3 s ->
 #: 4.3 s per chunk), so the classic emitters compile it. Most of the rest is LLVM
 #: (~12 of 17 s for the sequential chunk), and LLVM's -O1 instead of the default -O3
 #: compiles the concurrent chunk (3456 trials) ~4 s faster and runs it as fast (5.4-5.6 s
 #: vs 6.0 s), the sequential one ~4 s faster and 0.3 s slower per chunk (2.7 s vs 2.4 s).
-CHUNK_COMPILER_OPTIONS = {
+LARGE_PROGRAM_COMPILER_OPTIONS = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_backend_optimization_level": 1,
 }
 
 
-@eqx.filter_jit(compiler_options=CHUNK_COMPILER_OPTIONS)
+@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
 def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
     mesh = _mesh()
     indices = start + jnp.arange(chunk_size)
