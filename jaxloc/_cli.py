@@ -140,6 +140,25 @@ def _assumptions(scenario, trials: int, seed: int) -> str:
     )
 
 
+def _use_every_core() -> int | None:
+    """Expose every core this process may use as a JAX CPU device, so that a study's
+    trials are sharded over all of them (XLA runs a CPU device's program on one core).
+    Left alone when `XLA_FLAGS` or JAX's `jax_num_cpu_devices` already set a count, or
+    when JAX has already started (`main` called from Python). Returns the count set."""
+    import jax
+
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return None
+    if jax.config.jax_num_cpu_devices != -1:
+        return None
+    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    try:
+        jax.config.update("jax_num_cpu_devices", n or 1)
+    except RuntimeError:
+        return None
+    return n
+
+
 def _enable_compile_cache() -> str | None:
     """Keep compiled XLA programs on disk between runs (JAX's persistent compilation
     cache), so that only a command's first run pays for compilation. The folder is
@@ -160,6 +179,8 @@ def _enable_compile_cache() -> str | None:
 
 
 def _run(scenarios: dict, args, title: str) -> int:
+    import jax
+
     from ._montecarlo import balanced_chunk_size, precompile, run_study, stream_study
     from ._stats import summarize
     from ._trial import METHODS
@@ -185,11 +206,13 @@ def _run(scenarios: dict, args, title: str) -> int:
                 with open(manifest) as f:
                     chunk_size = int(json.load(f)["chunk_size"])
     t_start = time.perf_counter()
+    report["devices"] = jax.device_count()
     if len(scenarios) > 1:
         precompile(list(scenarios.values()), chunk_size, methods)
         report["compile_seconds"] = time.perf_counter() - t_start
         print(f"\n(compiled {len(scenarios)} studies in parallel: "
-              f"{report['compile_seconds']:.1f} s)")
+              f"{report['compile_seconds']:.1f} s; trials sharded over {jax.device_count()} "
+              f"{jax.devices()[0].platform.upper()} devices)")
     for strategy, scenario in scenarios.items():
         t0 = time.perf_counter()
         out_dir = None if args.out is None else f"{args.out}/{strategy}"
@@ -348,6 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--trials must be positive; got {args.trials}")
     if getattr(args, "chunk_size", None) is not None and args.chunk_size <= 0:
         parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
+    _use_every_core()
     _enable_compile_cache()
     try:
         return args.func(args)

@@ -10,8 +10,9 @@ $L_{jk} = \sin\psi_i$ exactly.
 
 Rotations: ${}^rR_j$ maps ${}^jT_r \mapsto -{}^rT_j$ and ${}^jT_k \mapsto {}^rT_k - {}^rT_j$
 (the paper's Eq. 2, whose last line should read ${}^1R_3$). With two vector pairs the
-paper's Eq. 5 does not exist (rank 2); jaxloc solves the same least squares problem with
-Kabsch and the determinant fix ([`jaxloc.kabsch`][]).
+paper's Eq. 5 does not exist (rank 2); jaxloc solves the same least squares problem as
+[`jaxloc.kabsch`][] (with the determinant fix), in its closed form for two pairs of unit
+vectors.
 """
 
 import equinox as eqx
@@ -22,7 +23,6 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._misc import safe_norm, safe_normalize
-from ._pose import kabsch
 from ._results import raise_if_failed, RESULTS
 
 
@@ -107,9 +107,9 @@ def mutual_localization(
     R = {ref: jnp.eye(3, dtype=u.dtype)}
     for m in (j, k):
         n = k if m == j else j
-        a = jnp.stack([u[m, ref], u[m, n]])
-        b = jnp.stack([-u[ref, m], safe_normalize(p[n] - p[m])])
-        R[m] = kabsch(a, b).as_matrix()
+        R[m] = _two_pair_rotation(
+            u[m, ref], u[m, n], -u[ref, m], safe_normalize(p[n] - p[m])
+        )
 
     rotations = jnp.stack([R[i] for i in range(3)])
     translations = jnp.stack([p[i] for i in range(3)])
@@ -122,6 +122,22 @@ def mutual_localization(
     stats = {"min_angle": jnp.min(psi), "angle_sum_error": jnp.sum(psi) - jnp.pi}
     sol = MutualSolution(T_ref_body, result, stats)
     return raise_if_failed(sol, result, throw)
+
+
+def _two_pair_rotation(a1, a2, b1, b2) -> Float[Array, "3 3"]:
+    """Kabsch for two pairs of unit vectors with equal weights, in closed form.
+
+    `sum_i b_i . R a_i = (b+ . R a+ + b- . R a-) / 2` with `a+- = a1 +- a2`, and for unit
+    vectors `a+ _|_ a-` and `b+ _|_ b-`: the rotation taking `a+` to `b+` and `a-` to
+    `b-` (their directions) maximizes both terms, so it is Kabsch's solution. Defined when
+    neither pair is (anti)parallel, i.e. away from collinear robots.
+    """
+
+    def frame(v1, v2):
+        e1, e2 = safe_normalize(v1 + v2), safe_normalize(v1 - v2)
+        return jnp.stack([e1, e2, jnp.cross(e1, e2)], axis=1)
+
+    return frame(b1, b2) @ frame(a1, a2).T
 
 
 def _pairs() -> tuple[tuple[int, int], ...]:

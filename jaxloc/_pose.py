@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, ArrayLike, Float, Scalar
 
+from ._linalg import max_trace_rotation
 from ._misc import safe_norm
 
 
@@ -59,7 +60,8 @@ def kabsch(
     r"""Weighted Kabsch/Procrustes: the rotation $R$ minimising $\sum_i w_i \|R a_i - b_i\|^2$.
 
     Solved with the SVD of $H = \sum_i w_i b_i a_i^T = U S V^T$ as
-    $R = U \,\mathrm{diag}(1, 1, \det(U V^T))\, V^T$, which is always a proper rotation and
+    $R = U \,\mathrm{diag}(1, 1, \det(U V^T))\, V^T$ (a LAPACK-free Jacobi SVD,
+    `jaxloc._linalg`), which is always a proper rotation and
     is well defined with only two vector pairs (where the paper's Eq. 5,
     $(M^T M)^{-1/2} M^T$, does not exist because $M$ has rank 2).
 
@@ -80,20 +82,12 @@ def kabsch(
     if weights is None:
         weights = jnp.ones(a.shape[0], dtype=a.dtype)
     H = jnp.einsum("n,ni,nj->ij", weights, b, a)
-    U, _, Vt = jnp.linalg.svd(H)
-    d = jnp.sign(jnp.linalg.det(U @ Vt))
-    d = jnp.where(d == 0, 1.0, d)
-    D = jnp.diag(jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d]))
-    return jaxlie.SO3.from_matrix(U @ D @ Vt)
+    return jaxlie.SO3.from_matrix(max_trace_rotation(H))
 
 
 def project_to_so3(M: Float[Array, "3 3"]) -> jaxlie.SO3:
     """Nearest rotation to a 3x3 matrix in the Frobenius norm (polar factor, det fixed)."""
-    U, _, Vt = jnp.linalg.svd(M)
-    d = jnp.sign(jnp.linalg.det(U @ Vt))
-    d = jnp.where(d == 0, 1.0, d)
-    D = jnp.diag(jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d]))
-    return jaxlie.SO3.from_matrix(U @ D @ Vt)
+    return jaxlie.SO3.from_matrix(max_trace_rotation(M))
 
 
 def pose_to_opencv(T_cam_world: jaxlie.SE3) -> tuple[Float[Array, "3"], Float[Array, "3"]]:

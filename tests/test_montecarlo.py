@@ -280,7 +280,9 @@ def test_cli_cameras(capsys):
 
 @pytest.mark.timeout(900)
 def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
-    """Sharded over 8 forced host devices: identical to one device (DESIGN §5)."""
+    """Sharded over 8 forced host devices: identical to one device (DESIGN §5). One chunk
+    of 128 (16 trials per device, padded): with LAPACK's batched SVD in the trial (jaxlib
+    0.10) this deadlocked at 0% CPU; the trial is LAPACK-free now (`jaxloc._linalg`)."""
     out = tmp_path / "multi.npz"
     script = textwrap.dedent(
         f"""
@@ -290,7 +292,7 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
         assert jax.device_count() == 8, jax.devices()
         s = jaxloc.Scenario.paper(strategy="sequential")
         r = jaxloc.run_study(
-            s, {N}, seed={SEED}, chunk_size=32, methods={METHODS!r}, progress=False
+            s, {N}, seed={SEED}, chunk_size=128, methods={METHODS!r}, progress=False
         )
         np.savez({str(out)!r}, **r)
         """
@@ -299,6 +301,22 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
     with np.load(out) as z:
         multi = {k: z[k] for k in z.files}
     _same(reference, multi)
+
+
+def test_command_line_uses_every_core_as_a_device():
+    script = (
+        "import jax, os; from jaxloc._cli import _use_every_core; n = _use_every_core(); "
+        "assert n == len(os.sched_getaffinity(0)) == jax.device_count(), (n, jax.devices())"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
+    # An explicit XLA_FLAGS device count is left alone.
+    script = (
+        "import jax; from jaxloc._cli import _use_every_core; "
+        "assert _use_every_core() is None and jax.device_count() == 3"
+    )
+    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=3"
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
 
 
 @pytest.mark.slow

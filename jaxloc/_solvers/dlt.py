@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Bool, Float, Scalar
 
+from .._linalg import jacobi_svd
+from .._misc import adjugate3
 from .._pose import project_to_so3
 from .._results import RESULTS
 
@@ -203,8 +205,9 @@ def paper_linear_pose(
     `too_few_points` (fewer than 6 usable points), `degenerate_configuration` (collinear
     points), `rank_deficient` (planarity below `1e-3`: coplanar points, where Eq. 6 has no
     unique solution; use `method="robust"`), or `successful`. `stats` additionally holds
-    `"rank_deficiency"`. Uses `jnp.linalg.svd` (LAPACK): slower batched than the robust
-    method (DESIGN §8). Single problem; batch with `jax.vmap`.
+    `"rank_deficiency"`. The SVDs are one-sided Jacobi in plain JAX operations (no
+    LAPACK, so it runs sharded over host devices; DESIGN §8). Single problem; batch with
+    `jax.vmap`.
     """
     X, bw, mask = check_inputs(points_world, bearings, mask, min_points=6, name="paper_linear_pose")
     dtype = X.dtype
@@ -236,8 +239,8 @@ def paper_linear_pose(
     A = jnp.concatenate([rows_u, rows_v], axis=0) * jnp.concatenate([w, w])[:, None]
     if 2 * n < 12:  # pragma: no cover - n >= 6 is enforced above
         A = jnp.concatenate([A, jnp.zeros((12 - 2 * n, 12), dtype=dtype)], axis=0)
-    _, svals, Vt = jnp.linalg.svd(A, full_matrices=False)
-    Pn = Vt[-1].reshape(3, 4)
+    svals, V = jacobi_svd(A)
+    Pn = V[:, -1].reshape(3, 4)
     # s_min / s_second; when s_second is itself at rounding level (relative to s_max) the
     # null space is numerically >= 2-dimensional: report 1.
     second_ok = svals[-2] > 100.0 * jnp.finfo(dtype).eps * svals[0]
@@ -274,13 +277,14 @@ def paper_linear_pose(
     bv = (x[:, 1] * RX[:, 2] - RX[:, 1]) * w
     At = jnp.concatenate([Au, Av], axis=0)
     bt = jnp.concatenate([bu, bv], axis=0)
-    t = jnp.linalg.solve(At.T @ At + jnp.finfo(dtype).tiny * jnp.eye(3, dtype=dtype), At.T @ bt)
+    adj, det = adjugate3(At.T @ At)
+    t = adj @ (At.T @ bt) / jnp.where(det != 0, det, jnp.finfo(dtype).tiny)
     pose = jaxlie.SE3.from_rotation_and_translation(R, t)
 
     # Point spread from an SVD (accurate to eps, unlike the closed form of `point_spread`).
     Xs = jax.lax.stop_gradient(X)
     Q = (Xs - jnp.sum(w[:, None] * Xs, axis=0, keepdims=True) / safe_count) * w[:, None]
-    sv = jnp.linalg.svd(Q, compute_uv=False)
+    sv, _ = jacobi_svd(Q)
     sv0 = jnp.where(sv[0] > 0, sv[0], 1.0)
     planarity = jnp.where(sv[0] > 0, sv[2] / sv0, 0.0)
     collinearity = jnp.where(sv[0] > 0, sv[1] / sv0, 0.0)
