@@ -93,12 +93,11 @@ def jacobi_svd(
             jnp.concatenate([bottom[:, 1:], top[:, -1:]], axis=1),
         )
 
-    def sweep(_, halves):
-        for _ in range(padded - 1):
-            halves = round_(*halves)
-        return halves
-
-    top, bottom = jax.lax.fori_loop(0, sweeps, sweep, (top, bottom))
+    # Every round is the same operation (the moves are a fixed permutation), so one loop
+    # over all rounds of all sweeps traces and compiles it once.
+    top, bottom = jax.lax.fori_loop(
+        0, sweeps * (padded - 1), lambda _, halves: round_(*halves), (top, bottom)
+    )
     X = jnp.concatenate([top, bottom[:, ::-1]], axis=1)
     A, V = X[:m], X[m:]
     s = jnp.sqrt(jnp.sum(A * A, axis=0))
