@@ -144,7 +144,7 @@ def _use_every_core() -> int | None:
     """Expose every core this process may use as a JAX CPU device, so that a study's
     trials are sharded over all of them (XLA runs a CPU device's program on one core).
     Left alone when `XLA_FLAGS` or JAX's `jax_num_cpu_devices` already set a count, or
-    when JAX has already started (`main` called from Python). Returns the count set."""
+    when JAX has already started. Returns the count set."""
     import jax
 
     if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
@@ -371,7 +371,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--trials must be positive; got {args.trials}")
     if getattr(args, "chunk_size", None) is not None and args.chunk_size <= 0:
         parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
-    _use_every_core()
     _enable_compile_cache()
     try:
         return args.func(args)
@@ -380,5 +379,12 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def console_main() -> int:
+    """The `jaxloc` command: `main` with every core exposed as a JAX CPU device. A Python
+    program calling `main` keeps its own JAX configuration."""
+    _use_every_core()
+    return main()
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())
