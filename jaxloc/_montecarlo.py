@@ -49,8 +49,11 @@ def _mesh() -> Mesh:
 #: Trials per vectorized step inside a chunk. Each device walks its share of a chunk in
 #: `lax.map` steps of this many `vmap`-ed trials: the working set of a step stays in cache,
 #: and an iterative solver's batch waits only for the slowest of these trials, not of the
-#: whole chunk (DESIGN §8).
-MICRO_BATCH = 64
+#: whole chunk (DESIGN §8). Chunks of ~3400 paper-scenario trials on 2 CPU devices ran in
+#: 3.2 / 3.3 / 3.6 s (concurrent) and 1.4 / 1.4 / 1.7 s (sequential) with steps of 16 /
+#: 32 / 64: smaller steps wait for fewer stragglers of the refinement, larger ones
+#: vectorize better. A CPU setting: an accelerator wants the whole chunk in one step.
+MICRO_BATCH = 32
 #: XLA options of jaxloc's large programs: a study's chunk (below) and the formation
 #: search (`jaxloc._design`). XLA:CPU's newer fusion emitters take ~25% longer
 #: to compile a cycle trial (measured on the paper's scenario, chunk of 4096: 49 s -> 37 s
@@ -89,7 +92,7 @@ def balanced_chunk_size(n_trials: int, max_chunk_size: int = 4096) -> int:
     10,000 trials in chunks of 4096 would compute 12,288. Rounded up to a multiple of
     `MICRO_BATCH` times the device count (each device's `lax.map` then has no remainder
     step, which would compile the trial a second time); e.g. 10,000 trials on 2 devices:
-    3 chunks of 3456."""
+    3 chunks of 3392."""
     if n_trials <= 0 or max_chunk_size <= 0:
         raise ValueError(
             f"`n_trials` and `max_chunk_size` must be positive; got {n_trials!r}, "

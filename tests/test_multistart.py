@@ -77,7 +77,10 @@ def test_equally_good_minima_are_reported_ambiguous():
     assert out["multi_error"] > 1.0  # the returned (lower-cost) minimum is the wrong one
 
 
-@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+# The concurrent case compiles three more refinements (~35 s): slow run only.
+@pytest.mark.parametrize(
+    "strategy", ["sequential", pytest.param("concurrent", marks=pytest.mark.slow)]
+)
 def test_step_budget_is_exact(strategy):
     """`max_steps` counts the returned solution's steps exactly, in the single-start
     (sequential) and the two-phase multi-start (concurrent) refinement: a cycle that
