@@ -152,8 +152,9 @@ def _use_every_core() -> int | None:
     if jax.config.jax_num_cpu_devices != -1:
         return None
     n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    n = n or 1
     try:
-        jax.config.update("jax_num_cpu_devices", n or 1)
+        jax.config.update("jax_num_cpu_devices", n)
     except RuntimeError:
         return None
     return n

@@ -33,7 +33,7 @@ def test_jacobi_svd_matches_lapack(shape, dtype, tol):
     off = gram - np.einsum("bi,ij->bij", np.diagonal(gram, axis1=1, axis2=2), np.eye(shape[1]))
     assert np.max(np.abs(off)) < 10 * tol * np.max(s_ref) ** 2
     cos = np.abs(np.einsum("bi,bi->b", V[:, :, -1], Vt_ref[:, -1]))
-    assert np.min(cos) > 1 - 1e3 * tol
+    assert np.min(cos) > 1 - 1e2 * tol
 
 
 def test_jacobi_svd_needs_a_tall_matrix():
@@ -66,9 +66,13 @@ def test_max_trace_rotation_is_kabsch(kind):
     R_ref = np.stack([_kabsch_reference(h) for h in H])
     np.testing.assert_allclose(R, R_ref, atol=1e-9)
     np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-12)
+    # float32: as accurate as LAPACK's float32 SVD on the same matrices at the 99th
+    # percentile. (The worst of the 300 two-pair cases is ~4x LAPACK's: 5e-5 vs 1.3e-5.)
     R32 = np.asarray(jax.vmap(max_trace_rotation)(jnp.asarray(H, jnp.float32)))
-    # float32: as accurate as LAPACK's float32 SVD on the same matrices (p99 ~1e-5).
-    assert np.percentile(np.abs(R32 - R_ref).max(axis=(1, 2)), 99) < 1e-4
+    R32_lapack = np.stack([_kabsch_reference(h) for h in H.astype(np.float32)])
+    err = np.abs(R32 - R_ref).max(axis=(1, 2))
+    err_lapack = np.abs(R32_lapack - R_ref).max(axis=(1, 2))
+    assert np.percentile(err, 99) <= 2 * np.percentile(err_lapack, 99) + 1e-6
 
 
 def test_max_trace_rotation_degenerate_input_is_a_rotation():
@@ -87,3 +91,17 @@ def test_max_trace_rotation_gradients():
     for kind in ("generic", "two pairs"):
         H = jnp.asarray(_cases(rng, kind))
         check_grads(max_trace_rotation, (H,), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
+
+
+def test_two_pair_rotation_is_kabsch():
+    from jaxloc._mutual import _two_pair_rotation
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a = rng.standard_normal((2, 3))
+        b = a @ np.asarray(jaxlie.SO3.exp(jnp.asarray(rng.standard_normal(3))).as_matrix()).T
+        b += 0.05 * rng.standard_normal((2, 3))  # noisy, so not an exact rotation
+        a /= np.linalg.norm(a, axis=1, keepdims=True)
+        b /= np.linalg.norm(b, axis=1, keepdims=True)
+        R = np.asarray(_two_pair_rotation(*jnp.asarray(a), *jnp.asarray(b)))
+        np.testing.assert_allclose(R, _kabsch_reference(b.T @ a), atol=1e-12)
