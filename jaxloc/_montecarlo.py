@@ -62,9 +62,16 @@ MICRO_BATCH = 32
 #: (~12 of 17 s for the sequential chunk), and LLVM's -O1 instead of the default -O3
 #: compiles the concurrent chunk (3456 trials) ~4 s faster and runs it as fast (5.4-5.6 s
 #: vs 6.0 s), the sequential one ~4 s faster and 0.3 s slower per chunk (2.7 s vs 2.4 s).
+#: XLA:CPU also hands some element-wise and reduction fusions to the YNNPACK library
+#: by default; on a trial's small arrays the library's per-call overhead outweighs its
+#: kernels: with `xla_cpu_experimental_ynn_fusion_type` empty (every fusion compiled by
+#: XLA), chunks of 3392 paper-scenario trials on 2 CPU devices ran in 2.6 s instead of
+#: 3.1 s (concurrent) and 1.2 s instead of 1.4 s (sequential), same numbers, and compile
+#: no slower.
 LARGE_PROGRAM_COMPILER_OPTIONS = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_backend_optimization_level": 1,
+    "xla_cpu_experimental_ynn_fusion_type": "",
 }
 
 
@@ -129,14 +136,31 @@ def precompile(
     [`jaxloc.run_study`][] / [`jaxloc.run_chunk`][] calls with the same scenario, chunk
     size and methods reuse the compiled programs (they do not depend on seed or chunk).
     """
+    for compiling in compile_in_background(scenarios, chunk_size, methods):
+        compiling.join()
+
+
+def compile_in_background(
+    scenarios: Sequence[Scenario],
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+) -> list[threading.Thread]:
+    """Start compiling the chunk programs of several studies; return at once.
+
+    Traces the studies one after the other, in the given order, and hands each program to
+    its own thread as soon as it is traced: the first one compiles while the next ones
+    are traced. Returns the threads, in the same order; `join` a study's thread before
+    running it, and the run reuses its program (as after [`jaxloc.precompile`][]). A
+    study can then run while the others are still compiling: put the one that compiles
+    fastest first.
+    """
     threads = []
     for scenario in scenarios:
         lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
         thread = threading.Thread(target=lowered.compile, daemon=True)
         thread.start()
         threads.append(thread)
-    for thread in threads:
-        thread.join()
+    return threads
 
 
 def run_chunk(

@@ -166,7 +166,7 @@ def _runner_up(params, costs, best, Xs, w, success, dtype) -> dict:
     }
 
 
-@ft.partial(jax.jit, static_argnames="runner_up")
+@ft.partial(jax.jit, static_argnames="runner_up", inline=True)
 def _robust_pose(X, bw, mask, runner_up: bool = False) -> PoseSolution:
     dtype = X.dtype
     eps = jnp.finfo(dtype).eps

@@ -284,7 +284,7 @@ def _alternative_starts(estimate: CycleEstimate, strategy: str, T0_place):
     return T_place, jnp.where(active[:, None], T_over, ident[None]), active
 
 
-@eqx.filter_jit
+@eqx.filter_jit(inline=True)
 def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, rtol, atol):
     strategy = observations.strategy
     dtype = observations.mutual_pixels.dtype
@@ -311,33 +311,57 @@ def _refine_cycle_impl(observations, scenario, estimate, *, solver, max_steps, r
             )
         else:
             # Multi-start in two phases: the primary start and the closed form's other
-            # local minima are refined together for a few steps; the one with the lowest
-            # cost goes on alone (a second start costs only those few steps).
+            # local minima are each refined for a few steps; the one with the lowest
+            # cost goes on alone (a second start costs only those few steps). The
+            # phases are jobs of one `lax.scan` (one per start, then the last one) so
+            # that the LM and the model are traced and compiled once.
             T1_place, T1_over, active1 = jax.lax.stop_gradient(starts)
             lanes = jnp.concatenate([active[None], active & active1])
+            start_place = jnp.concatenate([T0_place[None], T1_place])
+            start_over = jnp.concatenate([T0_over[None], T1_over])
+            n_lanes = lanes.shape[0]
             n_first = min(max_steps, _MULTI_START_STEPS)
-            T_place, T_over, steps1, converged1 = jax.vmap(
-                lambda tp, to, act: _batched_lm(
-                    tp, to, lm_data, lm_scenario, strategy, n_first, rtol, atol, act
+
+            def masked_chi2(chi2):
+                return jnp.where(lanes & jnp.isfinite(chi2), chi2, jnp.inf)
+
+            def job(slots, j):
+                T_place_j, T_over_j, steps_j, converged_j, chi2_j = slots
+                last = j == n_lanes
+                pick = jnp.argmin(masked_chi2(chi2_j[:n_lanes]))
+                lane = jnp.minimum(j, n_lanes - 1)
+                tp = jnp.where(last, T_place_j[pick], start_place[lane])
+                to = jnp.where(last, T_over_j[pick], start_over[lane])
+                act = jnp.where(last, active & ~converged_j[pick], lanes[lane])
+                budget = jnp.where(last, max_steps - n_first, n_first)
+                tp, to, k, conv = _batched_lm(
+                    tp, to, lm_data, lm_scenario, strategy, budget, rtol, atol, act
                 )
-            )(
-                jnp.concatenate([T0_place[None], T1_place]),
-                jnp.concatenate([T0_over[None], T1_over]),
-                lanes,
+                chi2 = jnp.sum(whitened(tp, to, lm_data, lm_scenario, strategy) ** 2)
+                slots = (
+                    T_place_j.at[j].set(tp), T_over_j.at[j].set(to), steps_j.at[j].set(k),
+                    converged_j.at[j].set(conv), chi2_j.at[j].set(chi2),
+                )
+                return slots, None
+
+            n_jobs = n_lanes + 1
+            slots = (
+                jnp.zeros((n_jobs,) + T0_place.shape, dtype),
+                jnp.zeros((n_jobs,) + T0_over.shape, dtype),
+                jnp.zeros(n_jobs, jnp.int32),
+                jnp.zeros(n_jobs, bool),
+                jnp.full(n_jobs, jnp.inf, dtype),
             )
-            chi2 = jax.vmap(
-                lambda tp, to: jnp.sum(whitened(tp, to, lm_data, lm_scenario, strategy) ** 2)
-            )(T_place, T_over)
-            chi2 = jnp.where(lanes & jnp.isfinite(chi2), chi2, jnp.inf)
+            (T_all, O_all, steps_all, conv_all, chi2_all), _ = jax.lax.scan(
+                job, slots, jnp.arange(n_jobs)
+            )
+            chi2 = masked_chi2(chi2_all[:n_lanes])
+            converged1 = conv_all[:n_lanes]
             pick = jnp.argmin(chi2)
-            centres = T_over[:, 4:]
-            T_place, T_over = T_place[pick], T_over[pick]
-            T_place, T_over, steps2, converged2 = _batched_lm(
-                T_place, T_over, lm_data, lm_scenario, strategy, max_steps - n_first,
-                rtol, atol, active & ~converged1[pick],
-            )
-            num_steps = steps1[pick] + steps2  # the returned solution's own steps
-            converged = converged1[pick] | converged2
+            centres = O_all[:n_lanes, 4:]
+            T_place, T_over = T_all[n_lanes], O_all[n_lanes]
+            num_steps = steps_all[pick] + steps_all[n_lanes]  # the solution's own steps
+            converged = converged1[pick] | conv_all[n_lanes]
             # Another converged minimum, distinct from the solution (camera centres more
             # than `_DISTINCT_MINIMUM` apart): its cost decides whether it is ambiguous.
             distinct = jnp.sum((centres - T_over[None, 4:]) ** 2, axis=-1) > _DISTINCT_MINIMUM**2

@@ -117,11 +117,26 @@ def _odometry_weights(obs: CycleObservations) -> Float[Array, " moves"]:
     return 1.0 / jnp.maximum(sigma, floor) ** 2
 
 
+def _mutual_steps(bearings: Float[Array, "steps 3 3 3"], refs: tuple[int, ...]):
+    """[`jaxloc.mutual_localization`][] of every step, as one `vmap` (traced and compiled
+    once, not once per step). Each step's robots are reordered so that its reference
+    robot comes first, then put back: the solution is the same numbers in any order
+    (each angle, side and rotation involves the same robots). Returns one
+    [`jaxloc.MutualSolution`][] per step."""
+    perms = np.array([(r, *(i for i in range(3) if i != r)) for r in refs])
+    steps = np.arange(len(refs))
+    permuted = bearings[steps[:, None, None], perms[:, :, None], perms[:, None, :]]
+    sols = jax.vmap(lambda b: mutual_localization(b, 0, throw=False))(permuted)
+    T = sols.T_ref_body.wxyz_xyz[steps[:, None], np.argsort(perms, axis=1)]
+    sols = eqx.tree_at(lambda sol: sol.T_ref_body, sols, jaxlie.SE3(T))
+    return [jax.tree.map(lambda x: x[k], sols) for k in steps]
+
+
 def _chain_sequential(obs: CycleObservations):
     """Poses of every step in step-0 units (circumdiameter of the first formation = 1)."""
     refs = _REFERENCE["sequential"]
     movers = moving_robot("sequential")
-    sols = [mutual_localization(obs.mutual[k], refs[k], throw=False) for k in range(4)]
+    sols = _mutual_steps(obs.mutual, refs)
     T = [sols[0].T_ref_body]
     for k in range(1, 4):
         ref, mover = refs[k], int(movers[k - 1])
@@ -459,7 +474,7 @@ def localize_cycle_methods(
         T = [_scale_translations(Tk, scale) for Tk in T]
         scales = jnp.full((4,), scale)
     else:
-        sols = [mutual_localization(observations.mutual[k], 0, throw=False) for k in range(3)]
+        sols = _mutual_steps(observations.mutual, _REFERENCE["concurrent"])
         P = jnp.stack([s.T_ref_body.translation() for s in sols])
         scales, scale_ok, odo_rms, runner_up, runner_up_ok = _fit_concurrent_scales(
             observations, P
