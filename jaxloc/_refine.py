@@ -493,7 +493,7 @@ def refine_cycle(
     (`"alternative_scales"`, `"alternative_T_world_overhead"`, `"alternative_ok"`, from
     the concurrent strategy's [`jaxloc.localize_cycle`][]: the runner-up scales, and the
     overhead solver's runner-up pose, e.g. the mirror pose of nearly coplanar points), the
-    solver `"lm"` refines every start together for a few steps and goes on from the one
+    solver `"lm"` refines each start for a few steps and goes on from the one
     with the lowest cost. If another start converged to a distinct minimum (camera more
     than 10 cm away) whose chi-square is within 4 of the solution's, the data cannot tell
     the two apart: `result` is `ambiguous` (the lower minimum is returned). `stats` then
