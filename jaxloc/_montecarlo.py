@@ -65,9 +65,10 @@ MICRO_BATCH = 32
 #: XLA:CPU also hands some element-wise and reduction fusions to the YNNPACK library
 #: by default; on a trial's small arrays the library's per-call overhead outweighs its
 #: kernels: with `xla_cpu_experimental_ynn_fusion_type` empty (every fusion compiled by
-#: XLA), chunks of 3392 paper-scenario trials on 2 CPU devices ran in 2.6 s instead of
-#: 3.1 s (concurrent) and 1.2 s instead of 1.4 s (sequential), same numbers, and compile
-#: no slower.
+#: XLA), chunks of 3392 paper-scenario trials on 2 CPU devices ran in 2.63 s instead of
+#: 3.46 s (concurrent) and 1.20 s instead of 1.44 s (sequential), and compile no slower
+#: (`benchmarks/study_programs.py --ab-ynn`). The last bits of the errors differ (another
+#: summation order); `jaxloc table1` prints the same table.
 LARGE_PROGRAM_COMPILER_OPTIONS = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_backend_optimization_level": 1,

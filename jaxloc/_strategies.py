@@ -32,7 +32,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._misc import adjugate3, safe_norm, safe_normalize
-from ._mutual import mutual_localization
+from ._mutual import _others, mutual_localization
 from ._normal_equations import _cholesky, _cholesky_solve
 from ._observations import (
     CycleObservations,
@@ -120,10 +120,10 @@ def _odometry_weights(obs: CycleObservations) -> Float[Array, " moves"]:
 def _mutual_steps(bearings: Float[Array, "steps 3 3 3"], refs: tuple[int, ...]):
     """[`jaxloc.mutual_localization`][] of every step, as one `vmap` (traced and compiled
     once, not once per step). Each step's robots are reordered so that its reference
-    robot comes first, then put back: the solution is the same numbers in any order
-    (each angle, side and rotation involves the same robots). Returns one
+    robot comes first, then put back: the poses are the same numbers in any order (each
+    angle, side and rotation involves the same robots). Returns one
     [`jaxloc.MutualSolution`][] per step."""
-    perms = np.array([(r, *(i for i in range(3) if i != r)) for r in refs])
+    perms = np.array([(r, *_others(r)) for r in refs])
     steps = np.arange(len(refs))
     permuted = bearings[steps[:, None, None], perms[:, :, None], perms[:, None, :]]
     sols = jax.vmap(lambda b: mutual_localization(b, 0, throw=False))(permuted)

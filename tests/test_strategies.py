@@ -193,3 +193,23 @@ def test_cycle_poses_helpers():
         jaxlie.SE3.identity().wxyz_xyz,
         atol=1e-12,
     )
+
+
+def test_mutual_steps_equal_one_solve_per_step():
+    # One vmap over the steps, each with its robots reordered so that the reference comes
+    # first, gives the same poses as solving each step with its own reference robot.
+    from jaxloc._mutual import mutual_localization
+    from jaxloc._strategies import _mutual_steps
+
+    rng = np.random.default_rng(5)
+    bearings = rng.standard_normal((4, 3, 3, 3))
+    bearings /= np.linalg.norm(bearings, axis=-1, keepdims=True)
+    refs = (0, 2, 0, 1)
+    sols = _mutual_steps(jnp.asarray(bearings), refs)
+    for k, ref in enumerate(refs):
+        want = mutual_localization(jnp.asarray(bearings[k]), ref, throw=False)
+        np.testing.assert_allclose(
+            sols[k].T_ref_body.wxyz_xyz, want.T_ref_body.wxyz_xyz, rtol=0, atol=1e-14
+        )
+        assert sols[k].result == want.result
+        assert sols[k].stats["min_angle"] == want.stats["min_angle"]
