@@ -7,7 +7,7 @@ Also measured by `benchmarks/run.py` (which imports `measure`).
 Rendered images (jaxloc's own renderer: blur, sensor noise, lighting change, 4 distractor
 blobs each) of the overhead camera (three markers) and of an omnidirectional camera (two
 markers, annulus mask). OpenCV is limited to one thread. Prints the median time per image
-of `jaxloc._markers.detect_markers` (the paper reports 12 ms per 640x480 image; the issue's
+of `jaxloc._vision.markers.detect_markers` (the paper reports 12 ms per 640x480 image; the issue's
 target is <= 2 ms), and the detection error against the rendered centroids, so speed is
 never bought with accuracy. The sphere-centre correction of the front end is timed apart
 (it goes through the JAX camera model).
@@ -22,8 +22,13 @@ import cv2
 import jax.random as jr
 import jaxloc
 import numpy as np
-from jaxloc._markers import annulus_mask, DEFAULT_MARKER_COLORS, detect_markers
-from jaxloc._render import annulus_of, DEFAULT_MARKER_BGR, render_markers, sphere_center_pixel
+from jaxloc._vision.markers import annulus_mask, DEFAULT_MARKER_COLORS, detect_markers
+from jaxloc._vision.render import (
+    annulus_of,
+    DEFAULT_MARKER_BGR,
+    render_markers,
+    sphere_center_pixel,
+)
 
 
 def measure(images: int = 20, repeat: int = 20, verbose: bool = True) -> dict:

@@ -227,7 +227,7 @@ def overhead_problems(n: int, seed: int = 0):
     import jax.random as jr
     import jaxloc
     import numpy as np
-    from jaxloc._cycle_model import _first_occurrence
+    from jaxloc._refine.model import _first_occurrence
 
     scenario = jaxloc.Scenario.paper(strategy="sequential")
     cam = jaxloc.paper_overhead_camera()
@@ -311,7 +311,7 @@ def bench_overhead(quick: bool, report: dict) -> None:
     import jaxloc
     import numpy as np
     import poselib
-    from jaxloc._overhead import map_problems
+    from jaxloc._solvers.overhead import map_problems
 
     cv2.setNumThreads(1)
     batches = [1, 100, 10_000]
@@ -559,7 +559,7 @@ def bench_joint(quick: bool, report: dict) -> None:
     import jaxloc
     import numpy as np
     import scipy.optimize
-    from jaxloc._cycle_model import _first_occurrence, _unpack, cycle_data, whitened
+    from jaxloc._refine.model import _first_occurrence, _unpack, cycle_data, whitened
 
     strategy = "sequential"
     scenario = jaxloc.Scenario.paper(strategy=strategy)
@@ -678,7 +678,7 @@ def bench_joint(quick: bool, report: dict) -> None:
         },
         "scipy_least_squares": scipy_rows,
         "note": "scipy: default method 'trf' and tolerances (1e-8), residuals = "
-        "jaxloc._cycle_model.whitened through a jitted wrapper, same start "
+        "jaxloc._refine.model.whitened through a jitted wrapper, same start "
         "(localize_cycle robust) and gauge (C1's start pose fixed) as refine_cycle.",
     }
     del jaxlie

@@ -5,7 +5,7 @@
 
 For each strategy of the paper's scenario (10,000 trials' chunk size, all three methods,
 2 host CPU devices as `jaxloc table1` uses on this machine): the seconds to trace and
-lower `jaxloc._montecarlo._run_chunk`, the process CPU seconds of its XLA compile, and the
+lower `jaxloc._study.engine._run_chunk`, the process CPU seconds of its XLA compile, and the
 number of fused kernels in the compiled program (XLA:CPU compiles each with LLVM: the
 compile time grows with their number). With `--ab-ynn`, the same program is compiled a
 second time with XLA:CPU's default YNNPACK library fusions on, and chunks are run
@@ -38,9 +38,9 @@ def main() -> None:
     import numpy as np
 
     jax.config.update("jax_enable_x64", True)
-    import jaxloc._montecarlo as mc
+    import jaxloc._study.engine as mc
     from jaxloc import Scenario
-    from jaxloc._trial import METHODS
+    from jaxloc._study.trial import METHODS
 
     chunk = mc.balanced_chunk_size(10_000)
     for strategy in ("sequential", "concurrent"):

@@ -10,7 +10,138 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from ._calibrate import (
+from ._cameras.models import (
+    AbstractCamera as AbstractCamera,
+    OmniCamera as OmniCamera,
+    PinholeCamera as PinholeCamera,
+    PTZCamera as PTZCamera,
+)
+from ._cameras.presets import (
+    field_of_view as field_of_view,
+    paper_omni_camera as paper_omni_camera,
+    paper_overhead_camera as paper_overhead_camera,
+    paper_ptz_camera as paper_ptz_camera,
+    R_BODY_OMNI as R_BODY_OMNI,
+    R_BODY_OVERHEAD as R_BODY_OVERHEAD,
+    R_BODY_PTZ as R_BODY_PTZ,
+)
+from ._core.poses import (
+    kabsch as kabsch,
+    pose_from_opencv as pose_from_opencv,
+    pose_to_opencv as pose_to_opencv,
+    position_error as position_error,
+    project_to_so3 as project_to_so3,
+    rotation_angle as rotation_angle,
+    rotation_error as rotation_error,
+    rotation_from_ypr as rotation_from_ypr,
+    ypr_from_rotation as ypr_from_rotation,
+)
+from ._core.results import (
+    RESULTS as RESULTS,
+    status_code as status_code,
+    status_messages as status_messages,
+    status_names as status_names,
+)
+from ._cycle.observations import (
+    CycleObservations as CycleObservations,
+    CyclePoses as CyclePoses,
+    move_start_step as move_start_step,
+    moving_robot as moving_robot,
+    num_moves as num_moves,
+    num_steps as num_steps,
+)
+from ._design.formation import (
+    constraint_margins as constraint_margins,
+    constraint_penalty as constraint_penalty,
+    constraint_values as constraint_values,
+    Formation as Formation,
+    FORMATION_FIELDS as FORMATION_FIELDS,
+    formation_filter as formation_filter,
+    Limits as Limits,
+    paper_fixed_moves as paper_fixed_moves,
+    place_fixed as place_fixed,
+    Placement as Placement,
+)
+from ._design.search import (
+    crlb_objective as crlb_objective,
+    design_formation as design_formation,
+    design_penalty as design_penalty,
+    DesignResult as DesignResult,
+    evaluate_formation as evaluate_formation,
+    mc_objective as mc_objective,
+    objective_value as objective_value,
+    rmse_ci as rmse_ci,
+    rmse_table as rmse_table,
+    simulate_formation as simulate_formation,
+)
+from ._refine.covariance import (
+    crlb_rmse as crlb_rmse,
+    cycle_covariance as cycle_covariance,
+    cycle_crlb as cycle_crlb,
+    CycleCovariance as CycleCovariance,
+)
+from ._refine.cycle import refine_cycle as refine_cycle
+from ._refine.model import (
+    num_placements as num_placements,
+    pixel_sigma_per_axis as pixel_sigma_per_axis,
+    placement_ids as placement_ids,
+)
+from ._refine.pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
+from ._sim.scenario import (
+    astype as astype,
+    load_scenario as load_scenario,
+    save_scenario as save_scenario,
+    Scenario as Scenario,
+    scenario_from_dict as scenario_from_dict,
+    scenario_to_dict as scenario_to_dict,
+)
+from ._sim.simulate import (
+    CycleTruth as CycleTruth,
+    noiseless as noiseless,
+    simulate_cycle as simulate_cycle,
+)
+from ._sim.world import (
+    AbstractSurface as AbstractSurface,
+    body_frame_on_surface as body_frame_on_surface,
+    body_pose_on_surface as body_pose_on_surface,
+    FlatSurface as FlatSurface,
+    formation_xy as formation_xy,
+    FunctionSurface as FunctionSurface,
+    SaddleSurface as SaddleSurface,
+    SinusoidSurface as SinusoidSurface,
+)
+from ._solvers.dlt import paper_linear_pose as paper_linear_pose, PoseSolution as PoseSolution
+from ._solvers.mutual import (
+    mutual_localization as mutual_localization,
+    MutualSolution as MutualSolution,
+)
+from ._solvers.overhead import (
+    map_problems as map_problems,
+    solve_overhead_pose as solve_overhead_pose,
+)
+from ._solvers.p3p import p3p as p3p, P3PSolution as P3PSolution
+from ._solvers.strategies import CycleEstimate as CycleEstimate, localize_cycle as localize_cycle
+from ._study.engine import (
+    balanced_chunk_size as balanced_chunk_size,
+    MICRO_BATCH as MICRO_BATCH,
+    precompile as precompile,
+    run_chunk as run_chunk,
+    run_study as run_study,
+    stream_study as stream_study,
+    trial_key as trial_key,
+)
+from ._study.stats import (
+    describe as describe,
+    StreamingSummary as StreamingSummary,
+    summarize as summarize,
+)
+from ._study.trial import (
+    CAMERAS as CAMERAS,
+    METHODS as METHODS,
+    run_trial as run_trial,
+    TrialErrors as TrialErrors,
+)
+from ._vision.calibrate import (
     calibrate_omni as calibrate_omni,
     calibrate_omni_corners as calibrate_omni_corners,
     calibrate_pinhole as calibrate_pinhole,
@@ -26,48 +157,23 @@ from ._calibrate import (
     parse_board as parse_board,
     save_camera as save_camera,
 )
-from ._camera import (
-    AbstractCamera as AbstractCamera,
-    OmniCamera as OmniCamera,
-    PinholeCamera as PinholeCamera,
-    PTZCamera as PTZCamera,
+from ._vision.markers import (
+    annulus_mask as annulus_mask,
+    DEFAULT_MARKER_COLORS as DEFAULT_MARKER_COLORS,
+    detect_markers as detect_markers,
+    MarkerColor as MarkerColor,
+    MarkerDetection as MarkerDetection,
+    read_image as read_image,
 )
-from ._crlb import (
-    crlb_rmse as crlb_rmse,
-    cycle_covariance as cycle_covariance,
-    cycle_crlb as cycle_crlb,
-    CycleCovariance as CycleCovariance,
+from ._vision.render import (
+    annulus_of as annulus_of,
+    DEFAULT_MARKER_BGR as DEFAULT_MARKER_BGR,
+    render_chessboard as render_chessboard,
+    render_cycle as render_cycle,
+    render_markers as render_markers,
+    sphere_center_pixel as sphere_center_pixel,
 )
-from ._cycle_model import (
-    num_placements as num_placements,
-    pixel_sigma_per_axis as pixel_sigma_per_axis,
-    placement_ids as placement_ids,
-)
-from ._design import (
-    crlb_objective as crlb_objective,
-    design_formation as design_formation,
-    design_penalty as design_penalty,
-    DesignResult as DesignResult,
-    evaluate_formation as evaluate_formation,
-    mc_objective as mc_objective,
-    objective_value as objective_value,
-    rmse_ci as rmse_ci,
-    rmse_table as rmse_table,
-    simulate_formation as simulate_formation,
-)
-from ._formation import (
-    constraint_margins as constraint_margins,
-    constraint_penalty as constraint_penalty,
-    constraint_values as constraint_values,
-    Formation as Formation,
-    FORMATION_FIELDS as FORMATION_FIELDS,
-    formation_filter as formation_filter,
-    Limits as Limits,
-    paper_fixed_moves as paper_fixed_moves,
-    place_fixed as place_fixed,
-    Placement as Placement,
-)
-from ._frontend import (
+from ._vision.team import (
     detect_team_images as detect_team_images,
     ImageLocalization as ImageLocalization,
     load_team as load_team,
@@ -78,110 +184,6 @@ from ._frontend import (
     scenario_for as scenario_for,
     Team as Team,
     team_from_rendered as team_from_rendered,
-)
-from ._markers import (
-    annulus_mask as annulus_mask,
-    DEFAULT_MARKER_COLORS as DEFAULT_MARKER_COLORS,
-    detect_markers as detect_markers,
-    MarkerColor as MarkerColor,
-    MarkerDetection as MarkerDetection,
-    read_image as read_image,
-)
-from ._montecarlo import (
-    balanced_chunk_size as balanced_chunk_size,
-    MICRO_BATCH as MICRO_BATCH,
-    precompile as precompile,
-    run_chunk as run_chunk,
-    run_study as run_study,
-    stream_study as stream_study,
-    trial_key as trial_key,
-)
-from ._mutual import mutual_localization as mutual_localization, MutualSolution as MutualSolution
-from ._observations import (
-    CycleObservations as CycleObservations,
-    CyclePoses as CyclePoses,
-    move_start_step as move_start_step,
-    moving_robot as moving_robot,
-    num_moves as num_moves,
-    num_steps as num_steps,
-)
-from ._overhead import map_problems as map_problems, solve_overhead_pose as solve_overhead_pose
-from ._pose import (
-    kabsch as kabsch,
-    pose_from_opencv as pose_from_opencv,
-    pose_to_opencv as pose_to_opencv,
-    position_error as position_error,
-    project_to_so3 as project_to_so3,
-    rotation_angle as rotation_angle,
-    rotation_error as rotation_error,
-    rotation_from_ypr as rotation_from_ypr,
-    ypr_from_rotation as ypr_from_rotation,
-)
-from ._presets import (
-    field_of_view as field_of_view,
-    paper_omni_camera as paper_omni_camera,
-    paper_overhead_camera as paper_overhead_camera,
-    paper_ptz_camera as paper_ptz_camera,
-    R_BODY_OMNI as R_BODY_OMNI,
-    R_BODY_OVERHEAD as R_BODY_OVERHEAD,
-    R_BODY_PTZ as R_BODY_PTZ,
-)
-from ._refine import refine_cycle as refine_cycle
-from ._refine_pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
-from ._render import (
-    annulus_of as annulus_of,
-    DEFAULT_MARKER_BGR as DEFAULT_MARKER_BGR,
-    render_chessboard as render_chessboard,
-    render_cycle as render_cycle,
-    render_markers as render_markers,
-    sphere_center_pixel as sphere_center_pixel,
-)
-from ._results import (
-    RESULTS as RESULTS,
-    status_code as status_code,
-    status_messages as status_messages,
-    status_names as status_names,
-)
-from ._scenario import (
-    astype as astype,
-    load_scenario as load_scenario,
-    save_scenario as save_scenario,
-    Scenario as Scenario,
-    scenario_from_dict as scenario_from_dict,
-    scenario_to_dict as scenario_to_dict,
-)
-from ._simulate import (
-    CycleTruth as CycleTruth,
-    noiseless as noiseless,
-    simulate_cycle as simulate_cycle,
-)
-from ._solvers import (
-    p3p as p3p,
-    P3PSolution as P3PSolution,
-    paper_linear_pose as paper_linear_pose,
-    PoseSolution as PoseSolution,
-)
-from ._stats import (
-    describe as describe,
-    StreamingSummary as StreamingSummary,
-    summarize as summarize,
-)
-from ._strategies import CycleEstimate as CycleEstimate, localize_cycle as localize_cycle
-from ._trial import (
-    CAMERAS as CAMERAS,
-    METHODS as METHODS,
-    run_trial as run_trial,
-    TrialErrors as TrialErrors,
-)
-from ._world import (
-    AbstractSurface as AbstractSurface,
-    body_frame_on_surface as body_frame_on_surface,
-    body_pose_on_surface as body_pose_on_surface,
-    FlatSurface as FlatSurface,
-    formation_xy as formation_xy,
-    FunctionSurface as FunctionSurface,
-    SaddleSurface as SaddleSurface,
-    SinusoidSurface as SinusoidSurface,
 )
 
 

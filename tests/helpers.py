@@ -3,7 +3,7 @@
 import equinox as eqx
 import jax.numpy as jnp
 import jaxlie
-import jaxloc._observations as obs_mod
+import jaxloc._cycle.observations as obs_mod
 import numpy as np
 from scipy.spatial.transform import Rotation
 

@@ -15,7 +15,8 @@ import jaxloc
 import numpy as np
 import pytest
 import yaml
-from jaxloc._calibrate import (
+from jaxloc._cli.images import register
+from jaxloc._vision.calibrate import (
     calibrate_pinhole,
     camera_from_kalibr,
     find_corners,
@@ -25,8 +26,7 @@ from jaxloc._calibrate import (
     parse_board,
     save_camera,
 )
-from jaxloc._cli_images import register
-from jaxloc._render import render_chessboard
+from jaxloc._vision.render import render_chessboard
 
 
 # The SHARED path idiom of tests/conftest.py.

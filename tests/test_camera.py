@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
-from jaxloc._camera import OmniCamera, PinholeCamera, PTZCamera
+from jaxloc._cameras.models import OmniCamera, PinholeCamera, PTZCamera
 
 
 SHARED = os.path.join(os.path.dirname(__file__), "..", "..", "shared")

@@ -1,4 +1,4 @@
-"""Tests of joint cycle refinement (jaxloc._refine.refine_cycle), its covariance and the CRLB.
+"""Tests of joint cycle refinement (jaxloc._refine.cycle.refine_cycle), its covariance and the CRLB.
 
 One module-level jitted pipeline (simulate -> perturbed-truth start -> refine_cycle ->
 cycle_crlb at the truth -> cycle_covariance at the estimate), vmapped over a fixed batch
@@ -14,7 +14,9 @@ import jax.random as jr
 import jaxlie
 import numpy as np
 import pytest
-from jaxloc._crlb import (
+from jaxloc._core.results import RESULTS
+from jaxloc._cycle.observations import CyclePoses
+from jaxloc._refine.covariance import (
     _covariance_at,
     _covariance_inputs,
     _crlb_inputs,
@@ -22,13 +24,11 @@ from jaxloc._crlb import (
     cycle_covariance,
     cycle_crlb,
 )
-from jaxloc._cycle_model import _first_occurrence, _predict
-from jaxloc._observations import CyclePoses
-from jaxloc._refine import refine_cycle
-from jaxloc._results import RESULTS
-from jaxloc._scenario import Scenario
-from jaxloc._simulate import noiseless, simulate_cycle
-from jaxloc._strategies import CycleEstimate
+from jaxloc._refine.cycle import refine_cycle
+from jaxloc._refine.model import _first_occurrence, _predict
+from jaxloc._sim.scenario import Scenario
+from jaxloc._sim.simulate import noiseless, simulate_cycle
+from jaxloc._solvers.strategies import CycleEstimate
 from scipy.stats import chi2
 
 

@@ -10,13 +10,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from jaxloc._design import (
-    crlb_objective,
-    mc_objective,
-    rmse_ci,
-    rmse_table,
-)
-from jaxloc._formation import (
+from jaxloc._design.formation import (
     constraint_margins,
     constraint_values,
     Formation,
@@ -25,8 +19,14 @@ from jaxloc._formation import (
     paper_fixed_moves,
     place_fixed,
 )
-from jaxloc._scenario import load_scenario, save_scenario, Scenario
-from jaxloc._simulate import simulate_cycle
+from jaxloc._design.search import (
+    crlb_objective,
+    mc_objective,
+    rmse_ci,
+    rmse_table,
+)
+from jaxloc._sim.scenario import load_scenario, save_scenario, Scenario
+from jaxloc._sim.simulate import simulate_cycle
 
 
 SEQ = Scenario.paper("sequential")
@@ -189,7 +189,7 @@ def test_rmse_confidence_intervals():
 
 
 def _parser():
-    from jaxloc._cli_design import register
+    from jaxloc._cli.design import register
 
     parser = argparse.ArgumentParser(prog="jaxloc")
     register(parser.add_subparsers(dest="command", required=True))
@@ -242,8 +242,8 @@ def test_mc_objective_gradient_matches_finite_differences():
 def test_cli_design_round_trips_through_a_scenario_file(tmp_path):
     # design (fixed moves, general triangle) -> scenario file -> `jaxloc simulate`: the file
     # holds the optimized formation, moves included, and the simulation runs it.
-    from jaxloc._cli import main
-    from jaxloc._formation import CONSTRAINT_SCALES
+    from jaxloc._cli.main import main
+    from jaxloc._design.formation import CONSTRAINT_SCALES
 
     out, report_path = tmp_path / "designed.yaml", tmp_path / "report.json"
     argv = ["design", "--strategy", "sequential", "--moves", "fixed", "--triangle", "general",

@@ -1,4 +1,4 @@
-"""LAPACK-free small linear algebra (jaxloc._linalg) against LAPACK (numpy)."""
+"""LAPACK-free small linear algebra (jaxloc._core.linalg) against LAPACK (numpy)."""
 
 import jax
 import jax.numpy as jnp
@@ -6,7 +6,7 @@ import jaxlie
 import numpy as np
 import pytest
 from jax.test_util import check_grads
-from jaxloc._linalg import jacobi_svd, max_trace_rotation
+from jaxloc._core.linalg import jacobi_svd, max_trace_rotation
 
 
 def _kabsch_reference(H):
@@ -94,7 +94,7 @@ def test_max_trace_rotation_gradients():
 
 
 def test_two_pair_rotation_is_kabsch():
-    from jaxloc._mutual import _two_pair_rotation
+    from jaxloc._solvers.mutual import _two_pair_rotation
 
     rng = np.random.default_rng(3)
     for _ in range(50):

@@ -7,14 +7,14 @@ import jax.random as jr
 import jaxloc
 import numpy as np
 import pytest
-from jaxloc._markers import (
+from jaxloc._vision.markers import (
     annulus_mask,
     DEFAULT_MARKER_COLORS,
     detect_markers,
     MarkerColor,
     read_image,
 )
-from jaxloc._render import annulus_of, DEFAULT_MARKER_BGR, render_markers
+from jaxloc._vision.render import annulus_of, DEFAULT_MARKER_BGR, render_markers
 
 
 COLORS = {

@@ -9,7 +9,7 @@ import jax.monitoring
 import jaxloc
 import numpy as np
 import pytest
-from jaxloc._cli import main
+from jaxloc._cli.main import main
 
 
 N = 96
@@ -308,7 +308,7 @@ def test_cli_cameras(capsys):
 def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
     """Sharded over 8 forced host devices: identical to one device (DESIGN §5). One chunk
     of 128 (16 trials per device, padded): with LAPACK's batched SVD in the trial (jaxlib
-    0.10) this deadlocked at 0% CPU; the trial is LAPACK-free now (`jaxloc._linalg`)."""
+    0.10) this deadlocked at 0% CPU; the trial is LAPACK-free now (`jaxloc._core.linalg`)."""
     out = tmp_path / "multi.npz"
     script = textwrap.dedent(
         f"""
@@ -331,14 +331,14 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
 
 def test_command_line_uses_every_core_as_a_device():
     script = (
-        "import jax, os; from jaxloc._cli import _use_every_core; n = _use_every_core(); "
+        "import jax, os; from jaxloc._cli.main import _use_every_core; n = _use_every_core(); "
         "assert n == len(os.sched_getaffinity(0)) == jax.device_count(), (n, jax.devices())"
     )
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
     # An explicit XLA_FLAGS device count is left alone.
     script = (
-        "import jax; from jaxloc._cli import _use_every_core; "
+        "import jax; from jaxloc._cli.main import _use_every_core; "
         "assert _use_every_core() is None and jax.device_count() == 3"
     )
     env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=3"
@@ -362,7 +362,7 @@ def test_chunks_as_ray_tasks_match_a_local_study(reference):
 
 
 def test_bound_samples_follow_the_bound(reference):
-    from jaxloc._trial import _psd_cholesky3
+    from jaxloc._study.trial import _psd_cholesky3
 
     rng = np.random.default_rng(0)
     A = rng.standard_normal((3, 3))
@@ -371,7 +371,7 @@ def test_bound_samples_follow_the_bound(reference):
         np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
         assert np.allclose(L, np.tril(L))
     # The draws: mean square = trace, median of |x| that of the chi distribution.
-    from jaxloc._trial import _bound_samples
+    from jaxloc._study.trial import _bound_samples
 
     P = jax.numpy.asarray(np.stack([A @ A.T, np.diag([4.0, 1.0, 0.0]), np.zeros((3, 3)), A @ A.T]))
     keys = jax.random.split(jax.random.key(0), 20_000)

@@ -11,12 +11,12 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 import pytest
-from jaxloc._montecarlo import trial_key
-from jaxloc._refine import _AMBIGUITY_MARGIN, refine_cycle
-from jaxloc._results import RESULTS
-from jaxloc._scenario import Scenario
-from jaxloc._simulate import simulate_cycle
-from jaxloc._strategies import CycleEstimate, localize_cycle_methods
+from jaxloc._core.results import RESULTS
+from jaxloc._refine.cycle import _AMBIGUITY_MARGIN, refine_cycle
+from jaxloc._sim.scenario import Scenario
+from jaxloc._sim.simulate import simulate_cycle
+from jaxloc._solvers.strategies import CycleEstimate, localize_cycle_methods
+from jaxloc._study.engine import trial_key
 
 
 def _single_and_multi_start(scenario, key):

@@ -6,7 +6,7 @@ import jaxlie
 import numpy as np
 import poselib
 import pytest
-from jaxloc._solvers import p3p, P3PSolution
+from jaxloc._solvers.p3p import p3p, P3PSolution
 
 
 _p3p_batch = jax.jit(jax.vmap(p3p))

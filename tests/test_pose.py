@@ -5,7 +5,7 @@ import jaxlie
 import jaxloc
 import numpy as np
 import pytest
-from jaxloc._mutual import mutual_localization
+from jaxloc._solvers.mutual import mutual_localization
 
 
 def _random_rotation(rng, angle=None):

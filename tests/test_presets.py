@@ -4,8 +4,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jaxloc._camera import OmniCamera, PinholeCamera, PTZCamera
-from jaxloc._presets import (
+from jaxloc._cameras.models import OmniCamera, PinholeCamera, PTZCamera
+from jaxloc._cameras.presets import (
     field_of_view,
     paper_omni_camera,
     paper_overhead_camera,

@@ -1,4 +1,4 @@
-"""Tests of jaxloc._refine: single overhead-pose refinement and joint cycle refinement.
+"""Tests of jaxloc._refine.cycle: single overhead-pose refinement and joint cycle refinement.
 
 Compilations are shared: one module-level `jit(vmap(...))` at a fixed batch size serves
 the exactness, Monte Carlo, NEES and failure-code tests.
@@ -11,10 +11,10 @@ import jax.random as jr
 import jaxlie
 import numpy as np
 import pytest
-from jaxloc._pose import pose_from_opencv, pose_to_opencv
-from jaxloc._presets import paper_overhead_camera
-from jaxloc._refine_pose import refine_overhead_pose
-from jaxloc._results import RESULTS
+from jaxloc._cameras.presets import paper_overhead_camera
+from jaxloc._core.poses import pose_from_opencv, pose_to_opencv
+from jaxloc._core.results import RESULTS
+from jaxloc._refine.pose import refine_overhead_pose
 from scipy.stats import chi2
 
 

@@ -8,9 +8,9 @@ import jaxlie
 import jaxloc
 import numpy as np
 import pytest
-from jaxloc._calibrate import find_corners
-from jaxloc._markers import DEFAULT_MARKER_COLORS, detect_markers
-from jaxloc._render import (
+from jaxloc._vision.calibrate import find_corners
+from jaxloc._vision.markers import DEFAULT_MARKER_COLORS, detect_markers
+from jaxloc._vision.render import (
     annulus_of,
     DEFAULT_MARKER_BGR,
     render_chessboard,

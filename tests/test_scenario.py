@@ -8,9 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import yaml
-from jaxloc._camera import OmniCamera, PinholeCamera
-from jaxloc._presets import paper_ptz_camera
-from jaxloc._scenario import (
+from jaxloc._cameras.models import OmniCamera, PinholeCamera
+from jaxloc._cameras.presets import paper_ptz_camera
+from jaxloc._sim.scenario import (
     astype,
     load_scenario,
     save_scenario,
@@ -18,7 +18,7 @@ from jaxloc._scenario import (
     scenario_from_dict,
     scenario_to_dict,
 )
-from jaxloc._world import FlatSurface, FunctionSurface, SaddleSurface, SinusoidSurface
+from jaxloc._sim.world import FlatSurface, FunctionSurface, SaddleSurface, SinusoidSurface
 
 
 def _custom():

@@ -7,10 +7,10 @@ import jax.random as jr
 import jaxlie
 import numpy as np
 import pytest
-from jaxloc._observations import CycleObservations, move_start_step, moving_robot
-from jaxloc._presets import R_BODY_OVERHEAD, R_BODY_PTZ
-from jaxloc._scenario import astype, Scenario
-from jaxloc._simulate import CycleTruth, noiseless, simulate_cycle
+from jaxloc._cameras.presets import R_BODY_OVERHEAD, R_BODY_PTZ
+from jaxloc._cycle.observations import CycleObservations, move_start_step, moving_robot
+from jaxloc._sim.scenario import astype, Scenario
+from jaxloc._sim.simulate import CycleTruth, noiseless, simulate_cycle
 
 
 N = 256  # one batch size everywhere, so each strategy compiles once
@@ -229,7 +229,7 @@ def _fixed_scenario(strategy, ground=None, moves=None):
 
 @pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
 def test_fixed_moves_are_applied_exactly(strategy):
-    from jaxloc._world import FlatSurface
+    from jaxloc._sim.world import FlatSurface
 
     # On a flat ground a move of length L in direction phi (mover's body frame at the
     # start of the move) displaces the robot by exactly L (cos phi, sin phi, 0) in that

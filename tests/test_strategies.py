@@ -6,8 +6,8 @@ import jaxloc
 import numpy as np
 import pytest
 from helpers import cycle_poses, exact_arrays, exact_observations, random_cycle_truth
-from jaxloc._observations import CycleObservations
-from jaxloc._strategies import localize_cycle, localize_cycle_methods
+from jaxloc._cycle.observations import CycleObservations
+from jaxloc._solvers.strategies import localize_cycle, localize_cycle_methods
 
 
 BATCH = 64  # one batch size for every batched test: one compilation per strategy
@@ -198,8 +198,8 @@ def test_cycle_poses_helpers():
 def test_mutual_steps_equal_one_solve_per_step():
     # One vmap over the steps, each with its robots reordered so that the reference comes
     # first, gives the same poses as solving each step with its own reference robot.
-    from jaxloc._mutual import mutual_localization
-    from jaxloc._strategies import _mutual_steps
+    from jaxloc._solvers.mutual import mutual_localization
+    from jaxloc._solvers.strategies import _mutual_steps
 
     rng = np.random.default_rng(5)
     bearings = rng.standard_normal((4, 3, 3, 3))

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
-from jaxloc._world import (
+from jaxloc._sim.world import (
     body_pose_on_surface,
     FlatSurface,
     formation_xy,

@@ -1,4 +1,3 @@
-"""Overhead-camera pose solvers: Lambda Twist P3P and the paper's linear Eq. 6."""
-
-from .dlt import paper_linear_pose as paper_linear_pose, PoseSolution as PoseSolution
-from .p3p import p3p as p3p, P3PSolution as P3PSolution
+"""Closed-form solvers: mutual localization, P3P, the overhead pose (paper Eq. 6 and
+robust), the moving strategies. Imports `_core`, `_cameras`, `_cycle`.
+"""

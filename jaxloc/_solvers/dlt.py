@@ -18,10 +18,10 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Bool, Float, Scalar
 
-from .._linalg import jacobi_svd
-from .._misc import adjugate3
-from .._pose import project_to_so3
-from .._results import RESULTS
+from .._core.linalg import jacobi_svd
+from .._core.numerics import adjugate3
+from .._core.poses import project_to_so3
+from .._core.results import RESULTS
 
 
 # Eq. 6 is declared rank deficient below this planarity (sigma3 / sigma1 of the centred

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Bool, Float, Scalar
 
-from .._misc import safe_sqrt
+from .._core.numerics import safe_sqrt
 
 
 _GN_STEPS = 3

@@ -1,0 +1,2 @@
+"""The `jaxloc` command line. May import every other subpackage; nothing imports it.
+"""

@@ -1,0 +1,329 @@
+r"""Maximum-likelihood refinement of one camera pose from known world points (DESIGN §5).
+
+[`jaxloc.refine_overhead_pose`][] minimises the (optionally robust) reprojection error in
+the image over the SE(3) tangent around the current pose (`T = T0 exp(delta)`,
+`delta = (v, omega)`, jaxlie's right perturbation `jaxlie.manifold.rplus`). Default
+solver: jaxloc's own Levenberg--Marquardt with the chain-rule Jacobian of the residuals
+(camera projection Jacobian times `dq/d delta = [R, R (e_k x X)]`), the 6x6 normal
+equations as element-wise sums and an unrolled Cholesky: no LAPACK, no batched `dot`
+(DESIGN §8), ~5x faster than `optx.least_squares` at the same minimum. Gradients through it
+by the implicit function theorem (custom JVP); the optimistix solvers (`"optx-lm"`,
+`"optx-gn"`) use optimistix's implicit adjoint.
+"""
+
+import functools as ft
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
+
+from .._cameras.models import AbstractCamera
+from .._core.least_squares import (
+    _implicit_pose_step,
+    _inverse6,
+    _make_solver,
+    _pose_lm,
+    _rplus,
+)
+from .._core.numerics import safe_sqrt
+from .._core.results import raise_if_failed, RESULTS
+from .._solvers.dlt import identity_like, PoseSolution, where_pose
+from .._solvers.overhead import rotation_block
+
+
+LOSSES = (None, "huber", "cauchy")
+#: Solvers of [`jaxloc.refine_overhead_pose`][]: jaxloc's batched Levenberg--Marquardt /
+#: Gauss--Newton with the chain-rule Jacobian, or optimistix's on the same residuals.
+POSE_SOLVERS = ("lm", "gn", "optx-lm", "optx-gn")
+#: Default `loss_scale` of each robust loss, in units of `sigma` (95% asymptotic
+#: efficiency under Gaussian noise).
+DEFAULT_LOSS_SCALE = {"huber": 1.345, "cauchy": 2.3849}
+
+
+def _robust_factor(s: Float[Array, " n"], loss: str | None, c) -> Float[Array, " n"]:
+    r"""`sqrt(rho(s) / s)` for squared whitened residual norms `s`.
+
+    Scaling a residual `e` (with `s = |e|^2`) by this factor makes its squared norm
+    `rho(s)`, so the least-squares solver minimises $\sum_i \rho(s_i)$ exactly (rather than
+    an IRLS approximation) and the implicit adjoint differentiates the robust optimum.
+    Huber: $\rho(s) = s$ for $s \le c^2$, else $2c\sqrt{s} - c^2$.
+    Cauchy: $\rho(s) = c^2 \log(1 + s/c^2)$. Both have `rho(s)/s -> 1` as `s -> 0`.
+    """
+    if loss is None:
+        return jnp.ones_like(s)
+    c2 = c * c
+    if loss == "huber":
+        big = s > c2
+        safe_s = jnp.where(big, s, 2.0 * c2)
+        ratio = 2.0 * c / jnp.sqrt(safe_s) - c2 / safe_s
+        return jnp.where(big, jnp.sqrt(ratio), 1.0)
+    if loss == "cauchy":
+        x = s / c2
+        small = x < 1e-6
+        safe_x = jnp.where(small, 1.0, x)
+        ratio = jnp.where(small, 1.0 - 0.5 * x, jnp.log1p(safe_x) / safe_x)
+        return jnp.sqrt(ratio)
+    raise ValueError(f'`loss` must be None, "huber" or "cauchy"; got {loss!r}.')
+
+
+def _point_residuals(T_cam_world: jaxlie.SE3, camera, X, uv, weight):
+    """Whitened reprojection residuals `weight_i * (project(T X_i) - uv_i)`, `(n, 2)`."""
+    pred = camera.project(jax.vmap(T_cam_world.apply)(X))
+    return weight[:, None] * (pred - uv)
+
+
+def _pose_residuals(delta, args, *, loss):
+    T0, camera, X, uv, weight, c = args
+    T = jaxlie.manifold.rplus(T0, delta)
+    e = _point_residuals(T, camera, X, uv, weight)
+    f = _robust_factor(jnp.sum(e * e, axis=-1), loss, c)
+    return (f[:, None] * e).reshape(-1)
+
+
+def _camera_points(T_cam_world: jaxlie.SE3, X: Float[Array, "n 3"]):
+    """`(R, q)`: the rotation matrix and `q_i = R X_i + t`, written element-wise (a batched
+    `dot` of 3x3 matrices would be one tiny library call per problem under `vmap`)."""
+    R = T_cam_world.rotation().as_matrix()
+    q = jnp.sum(X[:, None, :] * R[None, :, :], axis=-1) + T_cam_world.translation()[None]
+    return R, q
+
+
+def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, loss):
+    r"""Robust whitened residuals `r` `(n, 2)` and their Jacobian `(n, 2, 6)` w.r.t. the
+    right perturbation `T exp(delta)`, `delta = (v, omega)`, at `delta = 0`.
+
+    Chain rule: $q = R(\exp(\delta) X) + t \approx R(X + v + \omega \times X) + t$, so
+    $\partial q / \partial v = R$ and $\partial q / \partial \omega_k = R (e_k \times X)$;
+    the camera's own `(2, 3)` projection Jacobian by forward mode (three tangents, one
+    point at a time: element-wise under `vmap`). The robust scaling `r = f(s) e`,
+    `s = |e|^2`, is differentiated exactly: `dr = (f I + 2 f'(s) e e^T) de`, so the
+    solver minimises $\sum \rho$ with its true gradient.
+    """
+    R, q = _camera_points(T_cam_world, X)
+    pred = camera.project(q)
+    Jp = jax.vmap(jax.jacfwd(camera.project))(q)  # (n, 2, 3)
+    e = weight[:, None] * (pred - uv)
+    A = weight[:, None, None] * jnp.sum(Jp[:, :, :, None] * R[None, None, :, :], axis=2)
+    Jw = rotation_block(A, X)
+    Je = jnp.concatenate([A, Jw], axis=-1)  # (n, 2, 6)
+    if loss is None:
+        return e, Je
+    s = jnp.sum(e * e, axis=-1)
+    f, df = jax.jvp(lambda s: _robust_factor(s, loss, c), (s,), (jnp.ones_like(s),))
+    eJ = jnp.sum(e[:, :, None] * Je, axis=1)  # e^T Je, (n, 6)
+    J = f[:, None, None] * Je + (2.0 * df)[:, None, None] * e[:, :, None] * eJ[:, None, :]
+    return f[:, None] * e, J
+
+
+def _pose_model(T_cam_world, camera, X, uv, weight, c, loss):
+    r, J = _residuals_and_jacobian(T_cam_world, camera, X, uv, weight, c, loss)
+    return r.reshape(-1), J.reshape(-1, 6)
+
+
+def _implicit_residuals(T_cam_world, args, static):
+    loss, camera_static = static
+    camera_dyn, X, uv, weight, c = args
+    camera = eqx.combine(camera_dyn, camera_static)
+    e = _point_residuals(T_cam_world, camera, X, uv, weight)
+    f = _robust_factor(jnp.sum(e * e, axis=-1), loss, c)
+    return (f[:, None] * e).reshape(-1)
+
+
+@eqx.filter_jit
+def _refine_pose_impl(
+    T0, camera, X, uv, mask, sigma, loss_scale, *, solver, loss, max_steps, rtol, atol
+):
+    dtype = X.dtype
+    finite = jnp.all(jnp.isfinite(X), axis=1) & jnp.all(jnp.isfinite(uv), axis=1)
+    start_ok = jnp.all(jnp.isfinite(T0.wxyz_xyz))
+    nonfinite = jnp.any(mask & ~finite) | ~start_ok
+    use = mask & finite
+    count = jnp.sum(use)
+    X = jnp.where(use[:, None], X, 0.0)
+    uv = jnp.where(use[:, None], uv, 0.0)
+    sigma = jnp.asarray(sigma, dtype)
+    weight = jnp.where(use, 1.0 / sigma, 0.0).astype(dtype)
+    T0 = where_pose(start_ok, T0, identity_like(dtype))
+    T0 = jaxlie.SE3(T0.wxyz_xyz.astype(dtype))
+    # Masked points sit in front of the camera with zero weight: they contribute nothing,
+    # and `project` stays smooth there.
+    ahead = T0.inverse() @ jnp.array([0.0, 0.0, 1.0], dtype)
+    X = jnp.where(use[:, None], X, ahead)
+    c = jnp.asarray(loss_scale, dtype)
+    if solver in ("lm", "gn"):
+        # The loop is not differentiated: `_implicit_pose_step` carries the derivatives.
+        T0s, cam_s, Xs, uvs, ws, cs = jax.tree.map(
+            jax.lax.stop_gradient, (T0, camera, X, uv, weight, c)
+        )
+        pose, num_steps, converged = _pose_lm(
+            lambda T: _pose_model(T, cam_s, Xs, uvs, ws, cs, loss),
+            T0s,
+            damped=solver == "lm",
+            max_steps=max_steps,
+            rtol=rtol,
+            atol=atol,
+            active=(count >= 3) & ~nonfinite,
+        )
+        camera_dyn, camera_static = eqx.partition(camera, eqx.is_inexact_array)
+        step = _implicit_pose_step(
+            _implicit_residuals, (loss, camera_static), pose.wxyz_xyz,
+            (camera_dyn, X, uv, weight, c),
+        )
+        pose = _rplus(pose, step, dtype)
+        result = RESULTS.where(
+            converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached
+        )
+    else:
+        fn = ft.partial(_pose_residuals, loss=loss)
+        sol = optx.least_squares(
+            fn,
+            _make_solver(solver.removeprefix("optx-"), rtol, atol),
+            jnp.zeros(6, dtype),
+            args=(T0, camera, X, uv, weight, c),
+            max_steps=max_steps,
+            throw=False,
+        )
+        pose = _rplus(T0, sol.value, dtype)
+        num_steps = sol.stats["num_steps"]
+        result = RESULTS.promote(sol.result)
+    # First-order covariance at the solution (Gaussian model, no robust weights):
+    # cov(delta) = (J^T J)^-1 with J the chain-rule Jacobian of the sigma-whitened
+    # residuals, delta the tangent of T_cam_world around the refined pose.
+    _, J = _residuals_and_jacobian(pose, camera, X, uv, weight, c, None)
+    J = J.reshape(-1, 6)
+    cov, cov_ok = _inverse6(jnp.sum(J[:, :, None] * J[:, None, :], axis=0))
+    e = _point_residuals(pose, camera, X, uv, use.astype(dtype))
+    sq = jnp.sum(e * e) / jnp.maximum(count, 1).astype(dtype)
+    result = RESULTS.where(cov_ok, result, RESULTS.degenerate_configuration)
+    in_front = jnp.all(camera.projectable(_camera_points(pose, X)[1]) | ~use)
+    result = RESULTS.where(
+        jnp.all(jnp.isfinite(pose.wxyz_xyz)) & in_front, result, RESULTS.no_valid_solution
+    )
+    result = RESULTS.where(count < 3, RESULTS.too_few_points, result)
+    result = RESULTS.where(nonfinite, RESULTS.nonfinite_observation, result)
+    success = result == RESULTS.successful
+    pose = where_pose(success, pose, identity_like(dtype))
+    stats = {
+        "num_steps": num_steps,
+        "rms_pixel_error": safe_sqrt(sq),
+        "covariance": jnp.where(success, cov, 0.0),
+    }
+    return PoseSolution(pose=pose, result=result, stats=stats)
+
+
+def refine_overhead_pose(
+    T0_cam_world: jaxlie.SE3,
+    camera: AbstractCamera,
+    points_world: Float[ArrayLike, "n 3"],
+    pixels: Float[ArrayLike, "n 2"],
+    mask: Bool[ArrayLike, " n"] | None = None,
+    *,
+    sigma: float | Scalar = 1.0,
+    solver: str = "lm",
+    loss: str | None = None,
+    loss_scale: float | Scalar | None = None,
+    max_steps: int = 32,
+    rtol: float = 1e-6,
+    atol: float = 1e-6,
+    throw: bool = True,
+) -> PoseSolution:
+    r"""Refine a camera pose by minimising its reprojection error in the image.
+
+    Solves
+    $\min_\delta \sum_i \rho\big(\|\pi(T_0 \exp(\delta)\, X_i) - u_i\|^2 / \sigma^2\big)$
+    over the SE(3) tangent `delta = (v, omega)` (jaxlie's right perturbation,
+    `jaxlie.manifold.rplus`), where $\pi$ is `camera.project`. A robust
+    $\rho$ is applied per point by scaling its whitened 2-vector residual by
+    $\sqrt{\rho(s)/s}$, which minimises $\sum \rho$ exactly.
+
+    **Arguments:**
+
+    - `T0_cam_world`: initial pose, a `jaxlie.SE3` mapping world points into the camera
+        frame (`p_cam = T @ p_world`), e.g. from [`jaxloc.solve_overhead_pose`][].
+    - `camera`: any [`jaxloc.AbstractCamera`][] (pixels in its image; OpenCV convention).
+    - `points_world`: world points (m), shape `(n, 3)`.
+    - `pixels`: their observed pixels `(u, v)`, shape `(n, 2)`.
+    - `mask`: optional boolean `(n,)`; `False` marks points to ignore (their values, even
+        NaN, are not used).
+    - `sigma`: standard deviation of the pixel noise per image axis (px). It sets the
+        covariance's scale and the robust loss's scale, not the optimum of the plain
+        least-squares cost. For the paper's noise model (radius ~ N(0, s), uniform
+        direction) it is `s / sqrt(2)`. Keyword only (as are all below).
+    - `solver`: `"lm"` (default): jaxloc's Levenberg--Marquardt, re-linearized at the
+        current pose with the chain-rule Jacobian, element-wise 6x6 normal equations and
+        Cholesky (the fast path under `vmap`; see also `jaxloc._overhead.map_problems`);
+        converged when a step is below `atol + rtol * |t|_inf`, then one last
+        Gauss--Newton step polishes to rounding. `"gn"`: the same loop undamped
+        (Gauss--Newton). `"optx-lm"` / `"optx-gn"`: `optx.LevenbergMarquardt` /
+        `optx.GaussNewton` on the same residuals. All reach the same minimum.
+    - `loss`: `None` (least squares), `"huber"` or `"cauchy"`.
+    - `loss_scale`: the robust loss's threshold `c` in units of `sigma`; default 1.345 for
+        Huber and 2.3849 for Cauchy.
+    - `max_steps`: iteration limit of the solver (static).
+    - `rtol`, `atol`: the solver's termination tolerances (on the tangent step, rad / m,
+        and on the whitened residuals).
+    - `throw`: if `True`, raise (also under `jit`) when `result` is not successful;
+        otherwise inspect `result`.
+
+    **Returns:** a [`jaxloc.PoseSolution`][] whose `pose` is the refined `T_cam_world`
+    (identity on failure, never NaN) and whose `result` is the solver's promoted result,
+    or `too_few_points` (fewer than 3 unmasked points), `nonfinite_observation` (NaN/inf
+    in an unmasked point or pixel, or in `T0_cam_world`), `degenerate_configuration` (the
+    information matrix is singular, e.g. collinear points), `no_valid_solution` (the
+    solution puts an unmasked point where the camera cannot project it, e.g. behind it). `stats`:
+
+    - `"num_steps"`: solver iterations (model evaluations with a Jacobian).
+    - `"rms_pixel_error"`: RMS over unmasked points of the reprojection error norm (px).
+    - `"covariance"`: first-order covariance of the tangent `(v, omega)` of the refined
+        pose (`T_true ~ T_hat exp(delta)`), $(J^\top J / \sigma^2)^{-1}$ with J the
+        Jacobian of the pixel residuals, shape `(6, 6)`; m^2, m rad, rad^2 blocks (zero
+        on failure). The translation part `v` is in the camera frame's tangent, not the
+        camera centre: propagate with `jax.jacfwd` for the centre.
+
+    Single problem; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad` (implicit
+    derivatives of the optimum w.r.t. the points, pixels, camera and `sigma`; none w.r.t.
+    the start).
+    """
+    points_world = jnp.asarray(points_world)
+    pixels = jnp.asarray(pixels)
+    if points_world.ndim != 2 or points_world.shape[-1] != 3:
+        raise ValueError(
+            f"`points_world` must have shape (n, 3); got shape {points_world.shape}."
+        )
+    n = points_world.shape[0]
+    if pixels.shape != (n, 2):
+        raise ValueError(f"`pixels` must have shape ({n}, 2); got shape {pixels.shape}.")
+    if mask is None:
+        mask = jnp.ones((n,), dtype=bool)
+    mask = jnp.asarray(mask)
+    if mask.shape != (n,):
+        raise ValueError(f"`mask` must have shape ({n},); got shape {mask.shape}.")
+    if solver not in POSE_SOLVERS:
+        raise ValueError(
+            f'`solver` must be "lm", "gn", "optx-lm" or "optx-gn"; got {solver!r}.'
+        )
+    if loss not in LOSSES:
+        raise ValueError(f'`loss` must be None, "huber" or "cauchy"; got {loss!r}.')
+    if not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"`max_steps` must be a positive int; got {max_steps!r}.")
+    dtype = jnp.result_type(points_world.dtype, pixels.dtype)
+    if loss_scale is None:
+        loss_scale = DEFAULT_LOSS_SCALE.get(loss, 1.0)
+    sol = _refine_pose_impl(
+        T0_cam_world,
+        camera,
+        points_world.astype(dtype),
+        pixels.astype(dtype),
+        mask.astype(bool),
+        jnp.asarray(sigma, dtype),
+        jnp.asarray(loss_scale, dtype),
+        solver=solver,
+        loss=loss,
+        max_steps=max_steps,
+        rtol=rtol,
+        atol=atol,
+    )
+    return raise_if_failed(sol, sol.result, throw)

@@ -1,0 +1,368 @@
+"""Monte Carlo engine: many trials of a scenario, chunked, sharded, streamed to disk.
+
+Trial `i` of a study with seed `s` always uses the key `jax.random.fold_in(key(s), i)`, so
+the numbers do not depend on the chunk size, on the number of devices, or on which
+machine ran which chunk. Each chunk is one `jit(vmap(run_trial))` call whose trials are
+sharded over every local device; memory stays bounded by the chunk size whatever the
+number of trials.
+
+On disk a study is a folder: `study.json` (what was run: scenario, seed, chunk size,
+methods) and one `chunk_NNNNNN.npz` per chunk, each written to a temporary name and
+renamed atomically. Running the same study again resumes: finished chunks are read
+back, missing ones are computed; no trial is lost or duplicated.
+"""
+
+import json
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+from .._sim.scenario import Scenario, scenario_to_dict
+from .stats import StreamingSummary
+from .trial import METHODS, run_trial
+
+
+FIELDS = (
+    "status", "position", "rotation", "ypr", "position_vector",
+    "crlb_position_var", "crlb_rotation_var", "crlb_position_sample",
+    "crlb_rotation_sample", "nees",
+)
+
+
+def trial_key(seed: int, index):
+    """Key of trial `index` of a study seeded with `seed` (the same on any machine)."""
+    return jr.fold_in(jr.key(seed), index)
+
+
+def _mesh() -> Mesh:
+    return Mesh(np.array(jax.devices()), ("trials",))
+
+
+#: Trials per vectorized step inside a chunk. Each device walks its share of a chunk in
+#: `lax.map` steps of this many `vmap`-ed trials: the working set of a step stays in cache,
+#: and an iterative solver's batch waits only for the slowest of these trials, not of the
+#: whole chunk (DESIGN §8). Chunks of ~3400 paper-scenario trials on 2 CPU devices ran in
+#: 3.2 / 3.3 / 3.6 s (concurrent) and 1.4 / 1.4 / 1.7 s (sequential) with steps of 16 /
+#: 32 / 64: smaller steps wait for fewer stragglers of the refinement, larger ones
+#: vectorize better. A CPU setting: an accelerator wants the whole chunk in one step.
+MICRO_BATCH = 32
+#: XLA options of jaxloc's large programs: a study's chunk (below) and the formation
+#: search (`jaxloc._design`). XLA:CPU's newer fusion emitters take ~25% longer
+#: to compile a cycle trial (measured on the paper's scenario, chunk of 4096: 49 s -> 37 s
+#: concurrent, 34 s -> 30 s sequential) and run it no faster (6.3 s -> 5.2 s, 4.3 s ->
+#: 4.3 s per chunk), so the classic emitters compile it. Most of the rest is LLVM
+#: (~12 of 17 s for the sequential chunk), and LLVM's -O1 instead of the default -O3
+#: compiles the concurrent chunk (3456 trials) ~4 s faster and runs it as fast (5.4-5.6 s
+#: vs 6.0 s), the sequential one ~4 s faster and 0.3 s slower per chunk (2.7 s vs 2.4 s).
+#: XLA:CPU also hands some element-wise and reduction fusions to the YNNPACK library
+#: by default; on a trial's small arrays the library's per-call overhead outweighs its
+#: kernels: with `xla_cpu_experimental_ynn_fusion_type` empty (every fusion compiled by
+#: XLA), chunks of 3392 paper-scenario trials on 2 CPU devices ran in 2.63 s instead of
+#: 3.46 s (concurrent) and 1.20 s instead of 1.44 s (sequential), and compile no slower
+#: (`benchmarks/study_programs.py --ab-ynn`). The last bits of the errors differ (another
+#: summation order); `jaxloc table1` prints the same table.
+LARGE_PROGRAM_COMPILER_OPTIONS = {
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_backend_optimization_level": 1,
+    "xla_cpu_experimental_ynn_fusion_type": "",
+}
+
+
+@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
+def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
+    mesh = _mesh()
+    indices = start + jnp.arange(chunk_size)
+
+    def local(indices):
+        def one(i):
+            return run_trial(scenario, jr.fold_in(jr.key(seed), i), methods)
+
+        return jax.lax.map(one, indices, batch_size=min(MICRO_BATCH, indices.shape[0]))
+
+    spec = PartitionSpec("trials")
+    # check_vma=False: the trial code is written per trial, unaware of the device axis.
+    return jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)(
+        indices
+    )
+
+
+def balanced_chunk_size(n_trials: int, max_chunk_size: int = 4096) -> int:
+    """Chunk size that covers `n_trials` in the fewest chunks of about `max_chunk_size`
+    trials or fewer, with the least padding: a study always computes whole chunks, so
+    10,000 trials in chunks of 4096 would compute 12,288. Rounded up to a multiple of
+    `MICRO_BATCH` times the device count (each device's `lax.map` then has no remainder
+    step, which would compile the trial a second time); e.g. 10,000 trials on 2 devices:
+    3 chunks of 3392."""
+    if n_trials <= 0 or max_chunk_size <= 0:
+        raise ValueError(
+            f"`n_trials` and `max_chunk_size` must be positive; got {n_trials!r}, "
+            f"{max_chunk_size!r}."
+        )
+    quantum = MICRO_BATCH * jax.device_count()
+    if max_chunk_size < quantum:
+        return max_chunk_size
+    n_chunks = -(-n_trials // max_chunk_size)
+    per_chunk = -(-n_trials // n_chunks)
+    return -(-per_chunk // quantum) * quantum
+
+
+def _chunk_inputs(scenario: Scenario, seed: int, start: int, chunk_size: int, methods):
+    n_dev = jax.device_count()
+    padded = -(-chunk_size // n_dev) * n_dev
+    # seed and start are passed as arrays so that every chunk reuses one compilation.
+    return (
+        scenario, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int64), padded,
+        tuple(methods),
+    )
+
+
+def precompile(
+    scenarios: Sequence[Scenario],
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+) -> None:
+    """Compile the chunk programs of several studies at once, before running them.
+
+    Tracing and lowering are Python and run one study after the other; XLA's compilations
+    release the GIL and run in parallel threads, one per study. On a machine with as many
+    cores as studies, all compile in about the time of the slowest one. Later
+    [`jaxloc.run_study`][] / [`jaxloc.run_chunk`][] calls with the same scenario, chunk
+    size and methods reuse the compiled programs (they do not depend on seed or chunk).
+    """
+    for compiling in compile_in_background(scenarios, chunk_size, methods):
+        compiling.join()
+
+
+def compile_in_background(
+    scenarios: Sequence[Scenario],
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+) -> list[threading.Thread]:
+    """Start compiling the chunk programs of several studies; return at once.
+
+    Traces the studies one after the other, in the given order, and hands each program to
+    its own thread as soon as it is traced: the first one compiles while the next ones
+    are traced. Returns the threads, in the same order; `join` a study's thread before
+    running it, and the run reuses its program (as after [`jaxloc.precompile`][]). A
+    study can then run while the others are still compiling: put the one that compiles
+    fastest first.
+    """
+    threads = []
+    for scenario in scenarios:
+        lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
+        thread = threading.Thread(target=lowered.compile, daemon=True)
+        thread.start()
+        threads.append(thread)
+    return threads
+
+
+def run_chunk(
+    scenario: Scenario,
+    seed: int,
+    chunk_index: int,
+    chunk_size: int,
+    methods: tuple[str, ...] = METHODS,
+) -> dict[str, np.ndarray]:
+    """Run one chunk of a study: trials `chunk_index * chunk_size + [0, chunk_size)`.
+
+    This is the unit of work to hand to a cluster engine (one task per chunk; see the
+    README's "Studies larger than one machine"). Deterministic: a retried task returns
+    the same numbers. `chunk_size` is rounded up to a multiple of the device count
+    internally and the padding trials are dropped.
+
+    **Returns:** a dict of numpy arrays, the fields of [`jaxloc.TrialErrors`][] with a
+    leading trial axis, plus `"index"` (the trial indices).
+    """
+    start = chunk_index * chunk_size
+    errors = _run_chunk(*_chunk_inputs(scenario, seed, start, chunk_size, methods))
+    out = {name: np.asarray(getattr(errors, name))[:chunk_size] for name in FIELDS}
+    out["index"] = np.arange(start, start + chunk_size, dtype=np.int64)
+    return out
+
+
+def _atomic_write_npz(path: str, arrays: dict[str, np.ndarray]):
+    tmp = path + ".tmp.npz"
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _atomic_write_json(path: str, obj):
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2, sort_keys=True)
+    os.replace(tmp, path)
+
+
+def _study_chunks(
+    scenario: Scenario,
+    n_trials: int,
+    seed: int,
+    chunk_size: int,
+    methods: tuple[str, ...],
+    out_dir: str | None,
+    progress: bool,
+) -> Iterator[dict[str, np.ndarray]]:
+    """Validate a study's settings, then yield its chunks' arrays in order (computed, or
+    read back from `out_dir` when a previous run wrote them)."""
+    if not isinstance(n_trials, int) or n_trials <= 0:
+        raise ValueError(f"`n_trials` must be a positive integer; got {n_trials!r}.")
+    if not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"`chunk_size` must be a positive integer; got {chunk_size!r}.")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise ValueError(f"`methods` must be a non-empty subset of {METHODS}; got {methods!r}.")
+    methods = tuple(methods)
+    n_chunks = -(-n_trials // chunk_size)
+    manifest = {
+        "scenario": scenario_to_dict(scenario),
+        "seed": seed,
+        "chunk_size": chunk_size,
+        "methods": list(methods),
+        "format": 2,
+    }
+    if out_dir is not None:
+        os.makedirs(out_dir, exist_ok=True)
+        path = os.path.join(out_dir, "study.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                existing = json.load(f)
+            for field in manifest:
+                if existing.get(field) != manifest[field]:
+                    raise ValueError(
+                        f"`out_dir` {out_dir!r} holds a study with a different `{field}`; "
+                        "use a new folder or the same settings to resume it."
+                    )
+        else:
+            _atomic_write_json(path, manifest)
+
+    bar = _progress(progress, n_trials)
+    done = 0
+    t0 = time.perf_counter()
+    for c in range(n_chunks):
+        size = min(chunk_size, n_trials - c * chunk_size)
+        arrays = None
+        chunk_path = None
+        if out_dir is not None:
+            chunk_path = os.path.join(out_dir, f"chunk_{c:06d}.npz")
+            if os.path.exists(chunk_path):
+                with np.load(chunk_path, allow_pickle=False) as z:
+                    arrays = {k: z[k] for k in z.files}
+        if arrays is None:
+            # Always compute whole chunks so a resumed, longer study gets the same trials.
+            arrays = run_chunk(scenario, seed, c, chunk_size, methods)
+            if chunk_path is not None:
+                _atomic_write_npz(chunk_path, arrays)
+        arrays = {k: v[:size] for k, v in arrays.items()}
+        done += size
+        if bar is not None:
+            bar.advance(size, done / max(time.perf_counter() - t0, 1e-9))
+        yield arrays
+    if bar is not None:
+        bar.close()
+
+
+def run_study(
+    scenario: Scenario,
+    n_trials: int,
+    *,
+    seed: int = 0,
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+    out_dir: str | None = None,
+    progress: bool = True,
+    on_chunk: Callable[[int, dict], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Run `n_trials` trials of `scenario` and return their errors.
+
+    **Arguments:**
+
+    - `scenario`: a [`jaxloc.Scenario`][].
+    - `n_trials`: number of trials (any positive int; the last chunk is partial).
+    - `seed`: the study's seed; trial `i` uses `fold_in(key(seed), i)`.
+    - `chunk_size`: trials per compiled call; bounds the working memory. Results do not
+      depend on it.
+    - `methods`: estimators to compare on the same observations (see `jaxloc.METHODS`).
+    - `out_dir`: if given, every chunk is written there as it finishes, and a study
+      already present there is resumed (it must have the same scenario, seed, chunk size
+      and methods, or a `ValueError` says which differs).
+    - `progress`: show a progress bar with trials/s.
+    - `on_chunk`: optional callback `(chunk_index, arrays)` after each chunk.
+
+    **Returns:** dict of numpy arrays with a leading axis of `n_trials` (about 360 bytes
+    per trial with the three default methods; for studies too large to hold, use
+    [`jaxloc.stream_study`][]): `"status"` `(n, methods)`, `"position"`, `"rotation"`
+    `(n, methods, 4)`, `"ypr"`, `"position_vector"` `(n, methods, 4, 3)`, `"index"` `(n,)`.
+    """
+    chunks = []
+    for c, arrays in enumerate(
+        _study_chunks(scenario, n_trials, seed, chunk_size, methods, out_dir, progress)
+    ):
+        chunks.append(arrays)
+        if on_chunk is not None:
+            on_chunk(c, arrays)
+    return {k: np.concatenate([ch[k] for ch in chunks]) for k in chunks[0]}
+
+
+def stream_study(
+    scenario: Scenario,
+    n_trials: int,
+    *,
+    seed: int = 0,
+    chunk_size: int = 4096,
+    methods: tuple[str, ...] = METHODS,
+    out_dir: str | None = None,
+    progress: bool = True,
+) -> dict:
+    """Run a study of any size in bounded memory and return its summary.
+
+    The same trials, chunks, resumption and `out_dir` files as [`jaxloc.run_study`][]
+    (same arguments), but no chunk is kept in memory: each is folded into a
+    [`jaxloc.StreamingSummary`][] (exact means, RMSEs, failure counts, Cramér–Rao and
+    NEES means; percentiles from histograms, within 1.2%) and dropped. Memory is that of
+    one chunk's computation, whatever `n_trials`; with `out_dir`, every trial's errors
+    are also on disk.
+
+    **Returns:** [`jaxloc.summarize`][]'s dict, plus `"percentiles": "histogram"`.
+    """
+    summary = StreamingSummary(tuple(methods))
+    for arrays in _study_chunks(
+        scenario, n_trials, seed, chunk_size, methods, out_dir, progress
+    ):
+        summary.update(arrays)
+    return summary.result()
+
+
+class _progress:
+    """A rich progress bar showing trials and trials/s (or nothing if disabled)."""
+
+    def __new__(cls, enabled: bool, total: int):
+        if not enabled:
+            return None
+        return super().__new__(cls)
+
+    def __init__(self, enabled: bool, total: int):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+        self._p = Progress(
+            TextColumn("trials"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("{task.fields[rate]}"),
+            transient=True,
+        )
+        self._p.start()
+        self._task = self._p.add_task("trials", total=total, rate="")
+
+    def advance(self, n: int, rate: float):
+        self._p.update(self._task, advance=n, rate=f"{rate:,.0f} trials/s")
+
+    def close(self):
+        self._p.stop()

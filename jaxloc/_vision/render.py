@@ -1,0 +1,628 @@
+r"""Synthetic camera images through jaxloc's own camera models (DESIGN §5, image front end).
+
+Two kinds of image:
+
+- **Marker images**: each robot carries a coloured sphere centred on its reference point
+  (the point other cameras see, DESIGN §1); [`jaxloc.render_markers`][] draws the
+  spheres seen by one camera, [`jaxloc.render_cycle`][] every image of a simulated cycle
+  (PTZ of C1, omni cameras of C2 and C3, overhead camera of C at every step), with
+  blur, sensor noise, distractor blobs and a lighting change, and writes PNGs plus the
+  ground truth as JSON.
+- **Chessboards**: [`jaxloc.render_chessboard`][] draws a planar board seen from a given
+  pose through any camera model (pinhole, PTZ, omnidirectional), for calibration tests.
+
+Exactness. A sphere's outline is the image of its tangent cone: rays at angle
+$\alpha = \arcsin(r / d)$ around the direction of its centre. Projecting a ring of those
+rays with `camera.project` gives the exact silhouette through any central camera model
+(distortion and the unified model included), which is rasterized at 8x supersampling and
+area-averaged (anti-aliasing). The ground truth keeps both the projection of the sphere's
+centre (`center_px`, what localization needs) and the centroid of the rendered silhouette
+(`centroid_px`, what a detector measures: an off-axis sphere images as an ellipse whose
+centre is pushed outward, up to ~1 px for a close marker at the edge of a wide-angle
+image). Blur (symmetric) and noise leave the centroid unbiased.
+
+Randomness: an explicit JAX key, turned into a NumPy generator (`numpy_rng`) for the
+OpenCV side; the same key gives the same image.
+
+Colours are OpenCV BGR, images `uint8` `(height, width, 3)`, pixels `(u, v)` with the
+origin at the centre of the top-left pixel.
+"""
+
+import json
+import math
+import os
+from typing import Any
+
+import cv2
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import jaxlie
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
+
+from .._cameras.models import AbstractCamera, OmniCamera
+from .._cameras.presets import R_BODY_OMNI, R_BODY_PTZ
+
+
+#: Default marker colours (BGR) of C1, C2, C3: saturated red, green, blue. Their hues
+#: (0, 60, 120 on OpenCV's 0-179 scale) are far from the distractors' (yellow 30,
+#: cyan 90, magenta 150).
+DEFAULT_MARKER_BGR = ((30, 30, 220), (40, 190, 40), (220, 60, 30))
+_DISTRACTOR_BGR = ((30, 210, 230), (220, 200, 40), (200, 40, 200))
+_SUPERSAMPLE = 8
+_SILHOUETTE_POINTS = 96
+
+
+def numpy_rng(key: PRNGKeyArray) -> np.random.Generator:
+    """A NumPy generator seeded from a JAX key (for the OpenCV side of rendering)."""
+    data = np.asarray(jr.key_data(key) if jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+                      else key, dtype=np.uint32).ravel()  # fmt: skip
+    return np.random.default_rng([int(x) for x in data])
+
+
+# --------------------------------------------------------------------------------------
+# Sphere silhouettes.
+
+
+@eqx.filter_jit
+def _silhouettes(camera: AbstractCamera, centers: Float[Array, "n 3"], radius):
+    """Silhouette polygons `(n, m, 2)` px, projected centres `(n, 2)`, and validity `(n,)`
+    (the sphere is in front of / projectable by the camera, and the camera outside it)."""
+    d = jnp.linalg.norm(centers, axis=-1)
+    ok_d = d > 1.05 * radius
+    safe_d = jnp.where(ok_d, d, 1.0)
+    a = centers / safe_d[:, None]
+    sin_a = jnp.where(ok_d, radius / safe_d, 0.0)
+    cos_a = jnp.sqrt(1.0 - sin_a**2)
+    # Orthonormal basis around each axis (Frisvad-style, with a switch on the pole).
+    helper = jnp.where(jnp.abs(a[:, 2:3]) < 0.9, jnp.array([0.0, 0.0, 1.0]),
+                       jnp.array([1.0, 0.0, 0.0]))  # fmt: skip
+    e1 = jnp.cross(a, helper)
+    e1 = e1 / jnp.linalg.norm(e1, axis=-1, keepdims=True)
+    e2 = jnp.cross(a, e1)
+    phi = jnp.linspace(0.0, 2.0 * math.pi, _SILHOUETTE_POINTS, endpoint=False)
+    ring = (
+        cos_a[:, None, None] * a[:, None, :]
+        + sin_a[:, None, None]
+        * (
+            jnp.cos(phi)[None, :, None] * e1[:, None, :]
+            + jnp.sin(phi)[None, :, None] * e2[:, None, :]
+        )
+    )
+    poly = camera.project(ring)
+    center = camera.project(a)
+    ok = ok_d & jnp.all(camera.projectable(ring), axis=-1) & camera.projectable(a)
+    return poly, center, ok
+
+
+def _raster_polygon(poly: np.ndarray, shape_hw: tuple[int, int]):
+    """Anti-aliased coverage (float32 in [0, 1]) of a polygon inside an image, computed in
+    the polygon's bounding box at 8x supersampling; also the exact centroid of the
+    supersampled coverage. Returns `(y0, x0, coverage, centroid_uv, area_px)` or `None`
+    when the polygon misses the image."""
+    h, w = shape_hw
+    s = _SUPERSAMPLE
+    lo = np.floor(poly.min(axis=0)).astype(int) - 1
+    hi = np.ceil(poly.max(axis=0)).astype(int) + 2
+    x0, y0 = max(lo[0], 0), max(lo[1], 0)
+    x1, y1 = min(hi[0], w), min(hi[1], h)
+    if x1 <= x0 or y1 <= y0:
+        return None
+    # Supersampled pixel (i, j) centre <-> image coordinate (x0 - 0.5 + (i + 0.5) / s).
+    pts = (poly - np.array([x0, y0]) + 0.5) * s - 0.5
+    canvas = np.zeros(((y1 - y0) * s, (x1 - x0) * s), np.uint8)
+    shift = 4
+    cv2.fillPoly(canvas, [np.round(pts * (1 << shift)).astype(np.int32)], 255, cv2.LINE_8,
+                 shift)  # fmt: skip
+    m = cv2.moments(canvas, binaryImage=True)
+    if m["m00"] == 0:
+        return None
+    cu = (m["m10"] / m["m00"] + 0.5) / s - 0.5 + x0
+    cv = (m["m01"] / m["m00"] + 0.5) / s - 0.5 + y0
+    cov = cv2.resize(canvas, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+    cov = cov.astype(np.float32) / 255.0
+    return y0, x0, cov, np.array([cu, cv]), m["m00"] / (s * s)
+
+
+# --------------------------------------------------------------------------------------
+# Backgrounds, lighting, noise.
+
+
+def annulus_of(camera: OmniCamera, margin: float = 0.0) -> tuple[float, float, float, float]:
+    """Image annulus `(cx, cy, r_inner, r_outer)` (px) of an omnidirectional camera's
+    elevation band: the circles of `elevation_max` (inner) and `elevation_min` (outer),
+    from 72 azimuths through the camera model (distortion included), widened by `margin`
+    px on both sides."""
+    az = np.linspace(0.0, 2.0 * math.pi, 72, endpoint=False)
+    radii = []
+    for e in (float(camera.elevation_max), float(camera.elevation_min)):
+        p = np.stack([np.cos(az) * math.cos(e), np.sin(az) * math.cos(e),
+                      np.full_like(az, math.sin(e))], axis=-1)  # fmt: skip
+        uv = np.asarray(camera.project(jnp.asarray(p)))
+        radii.append(np.hypot(uv[:, 0] - float(camera.cx), uv[:, 1] - float(camera.cy)))
+    r_in = float(np.min(radii[0])) - margin
+    r_out = float(np.max(radii[1])) + margin
+    return float(camera.cx), float(camera.cy), max(r_in, 0.0), r_out
+
+
+def _background(rng: np.random.Generator, h: int, w: int, level: float) -> np.ndarray:
+    """Neutral grey floor/ceiling texture: low-frequency variation plus fine texture,
+    equal in the three channels (so it carries no hue)."""
+    coarse = rng.uniform(-1.0, 1.0, (max(h // 40, 2), max(w // 40, 2))).astype(np.float32)
+    low = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
+    fine = cv2.GaussianBlur(rng.normal(0.0, 1.0, (h, w)).astype(np.float32), (0, 0), 1.5)
+    g = level + 25.0 * low + 6.0 * fine
+    return np.repeat(g[:, :, None], 3, axis=2)
+
+
+def _lighting(rng: np.random.Generator, h: int, w: int, strength: float) -> np.ndarray:
+    """Smooth multiplicative gain field `(h, w, 3)`: a linear gradient plus a slight
+    colour tint (illumination change between images)."""
+    if strength == 0:
+        return np.ones((h, w, 3), np.float32)
+    gu, gv = rng.uniform(-strength, strength, 2)
+    base = 1.0 + rng.uniform(-strength, strength)
+    u = np.linspace(-0.5, 0.5, w, dtype=np.float32)[None, :]
+    v = np.linspace(-0.5, 0.5, h, dtype=np.float32)[:, None]
+    g = base + gu * u + gv * v
+    tint = 1.0 + rng.uniform(-0.05, 0.05, 3) * strength / 0.3
+    return g[:, :, None] * tint[None, None, :].astype(np.float32)
+
+
+def _finish(img: np.ndarray, rng, blur_sigma: float, noise_sigma: float, gain) -> np.ndarray:
+    if gain is not None:
+        img = img * gain
+    if blur_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
+    if noise_sigma > 0:
+        img = img + rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def _paint(img: np.ndarray, y0: int, x0: int, cov: np.ndarray, bgr) -> None:
+    h, w = cov.shape
+    patch = img[y0 : y0 + h, x0 : x0 + w]
+    c = cov[:, :, None]
+    patch *= 1.0 - c
+    patch += c * np.asarray(bgr, np.float32)[None, None, :]
+
+
+def _draw_distractors(img, rng, n: int, mask=None, keep_out=()) -> list[dict[str, Any]]:
+    """Distractors: blobs of colours no robot wears, plus blobs of the robots' own hues
+    that a detector must reject by shape or size (a long thin stripe, a speck). They are
+    kept 40 px away from the `keep_out` points (the markers): a distractor touching a
+    marker merges with it, which no colour detector can undo."""
+    h, w = img.shape[:2]
+    out = []
+    keep = np.asarray(keep_out, np.float64).reshape(-1, 2)
+    for k in range(n):
+        kind = k % 4
+        for _ in range(100):
+            u, v = rng.uniform(20, w - 20), rng.uniform(20, h - 20)
+            far = keep.size == 0 or np.min(np.hypot(keep[:, 0] - u, keep[:, 1] - v)) > 40
+            if (mask is None or mask[int(v), int(u)]) and far:
+                break
+        if kind in (0, 1):  # other hue, marker-like disc
+            bgr = _DISTRACTOR_BGR[int(rng.integers(len(_DISTRACTOR_BGR)))]
+            r = rng.uniform(4.0, 12.0)
+            poly = np.stack([u + r * np.cos(np.linspace(0, 2 * math.pi, 48)),
+                             v + r * np.sin(np.linspace(0, 2 * math.pi, 48))], -1)  # fmt: skip
+            desc = "other-colour disc"
+        elif kind == 2:  # robot hue, thin stripe (shape rejection)
+            bgr = DEFAULT_MARKER_BGR[int(rng.integers(3))]
+            L, t, ang = rng.uniform(30, 60), rng.uniform(2.0, 3.0), rng.uniform(0, math.pi)
+            d = np.array([math.cos(ang), math.sin(ang)])
+            n_ = np.array([-d[1], d[0]])
+            c = np.array([u, v])
+            poly = np.stack([c - L / 2 * d - t / 2 * n_, c + L / 2 * d - t / 2 * n_,
+                             c + L / 2 * d + t / 2 * n_, c - L / 2 * d + t / 2 * n_])  # fmt: skip
+            desc = "marker-colour stripe"
+        else:  # robot hue, speck (area rejection)
+            bgr = DEFAULT_MARKER_BGR[int(rng.integers(3))]
+            r = rng.uniform(0.6, 1.0)
+            poly = np.stack([u + r * np.cos(np.linspace(0, 2 * math.pi, 16)),
+                             v + r * np.sin(np.linspace(0, 2 * math.pi, 16))], -1)  # fmt: skip
+            desc = "marker-colour speck"
+        res = _raster_polygon(poly, (h, w))
+        if res is not None:
+            y0, x0, cov, cen, _ = res
+            _paint(img, y0, x0, cov, bgr)
+            out.append({"kind": desc, "bgr": list(bgr), "centroid_px": cen.tolist()})
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# Marker images.
+
+
+def render_markers(
+    camera: AbstractCamera,
+    points_cam: Float[ArrayLike, "n 3"],
+    *,
+    key: PRNGKeyArray,
+    colors: Any = DEFAULT_MARKER_BGR,
+    radius: float = 0.06,
+    blur_sigma: float = 0.8,
+    noise_sigma: float = 3.0,
+    distractors: int = 4,
+    lighting: float = 0.25,
+    background_level: float = 120.0,
+    names: Any = None,
+    info: dict[str, Any] | None = None,
+) -> tuple[np.ndarray, list[dict[str, Any]]]:
+    r"""Render coloured spherical markers seen by one camera.
+
+    **Arguments:**
+
+    - `camera`: any jaxloc camera; points are in its frame (a [`jaxloc.PTZCamera`][]'s
+      *base* frame, an [`jaxloc.OmniCamera`][]'s mirror frame, a pinhole's optical frame).
+    - `points_cam`: marker centres in the camera frame (m), shape `(n, 3)`.
+    - `key`: JAX PRNG key (background, lighting, distractors, noise). Keyword only, as
+      are the following.
+    - `colors`: BGR colour of each marker, `n` triples in 0-255.
+    - `radius`: sphere radius (m).
+    - `blur_sigma`: Gaussian blur (px, optics/defocus); `noise_sigma`: additive Gaussian
+      sensor noise (grey levels); `distractors`: number of distractor blobs;
+      `lighting`: strength of the multiplicative illumination change (0 = none).
+    - `background_level`: mean grey level of the background.
+    - `names`: optional label of each marker for the ground truth.
+    - `info`: optional dict that receives `info["distractors"]`, the distractors drawn
+      (kind, colour, centroid).
+
+    **Returns:** `(image, truth)`: a `uint8` BGR image `(height, width, 3)` and, per
+    marker, a dict with `name`, `visible` (drawn at least partly inside the image and,
+    for an omnidirectional camera, the mirror's annulus), `truncated` (partly cut by the
+    image border or the annulus), `center_px` (projection of the
+    sphere's centre), `centroid_px` (centroid of the drawn silhouette, clipped to the
+    image/annulus), `area_px`, `bgr`. Markers are painted far to near (occlusion).
+    """
+    p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
+    n = p.shape[0]
+    if len(colors) < n:
+        raise ValueError(f"`colors` must give one BGR colour per marker ({n}); got {len(colors)}.")
+    if not (radius > 0):
+        raise ValueError(f"`radius` must be positive; got {radius!r}.")
+    rng = numpy_rng(key)
+    w, h = camera.image_size
+    img = _background(rng, h, w, background_level)
+    ring_mask = None
+    if isinstance(camera, OmniCamera):
+        cx, cy, r_in, r_out = annulus_of(camera)
+        yy, xx = np.mgrid[0:h, 0:w]
+        rr = np.hypot(xx - cx, yy - cy)
+        ring_mask = (rr >= r_in - 6) & (rr <= r_out + 6)
+        img[~ring_mask] = 8.0  # outside the mirror: dark
+        img[rr < r_in - 6] = 45.0  # the robot's own body reflected at the centre
+    truth: list[dict[str, Any]] = []
+    keep_out = []
+    if n:
+        poly, center, ok = _silhouettes(camera, jnp.asarray(p), radius)
+        poly, center, ok = np.asarray(poly), np.asarray(center), np.asarray(ok)
+        # Keep distractors clear of every marker's outline (centre and rim points).
+        keep_out = [q for i in range(n) if ok[i] for q in poly[i][::8]]
+    distractor_info = _draw_distractors(img, rng, distractors, ring_mask, keep_out)
+    order = np.argsort(-np.linalg.norm(p, axis=-1)) if n else []
+    rec: dict[int, dict[str, Any]] = {}
+    for i in order:
+        name = names[i] if names is not None else str(i)
+        entry = {"name": name, "visible": False, "center_px": None, "centroid_px": None,
+                 "area_px": 0.0, "bgr": list(colors[i])}  # fmt: skip
+        rec[int(i)] = entry
+        if not ok[i]:
+            continue
+        entry["center_px"] = center[i].tolist()
+        pu, pv = poly[i][:, 0], poly[i][:, 1]
+        cut = bool(np.any((pu < 0.5) | (pu > w - 1.5) | (pv < 0.5) | (pv > h - 1.5)))
+        if ring_mask is not None:
+            rr_p = np.hypot(pu - cx, pv - cy)
+            cut = cut or bool(np.any((rr_p < r_in - 6) | (rr_p > r_out + 6)))
+        entry["truncated"] = cut
+        res = _raster_polygon(poly[i], (h, w))
+        if res is None:
+            continue
+        y0, x0, cov, _, _ = res
+        if ring_mask is not None:
+            cov = cov * ring_mask[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        if cov.sum() <= 0:
+            continue
+        _paint(img, y0, x0, cov, colors[i])
+        # Centroid of what is actually drawn (clipped), at the anti-aliased resolution.
+        yy, xx = np.mgrid[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        s = float(cov.sum())
+        centroid = [float((cov * xx).sum() / s), float((cov * yy).sum() / s)]
+        entry.update(visible=True, area_px=s, centroid_px=centroid)
+    # Nearer markers are painted later and hide farther ones; the truth keeps each
+    # marker's own (unoccluded) silhouette: overlapping markers are not a centroid test.
+    truth = [rec[i] for i in range(n)]
+    gain = _lighting(rng, h, w, lighting)
+    image = _finish(img, rng, blur_sigma, noise_sigma, gain)
+    if info is not None:
+        info["distractors"] = distractor_info
+    return image, truth
+
+
+def _rt(wxyz_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation matrix and translation of one wxyz_xyz pose."""
+    T = jaxlie.SE3(jnp.asarray(wxyz_xyz))
+    return np.asarray(T.rotation().as_matrix()), np.asarray(T.translation())
+
+
+def _rel_in_camera(T_world_body: jaxlie.SE3, k: int, i: int, mount: np.ndarray) -> np.ndarray:
+    """Positions of the three robots at step `k` in robot `i`'s camera frame."""
+    T = np.asarray(T_world_body.wxyz_xyz[k])
+    R_i, t_i = _rt(T[i])
+    p = T[:, 4:]
+    p_body = (p - t_i) @ R_i  # R_i^T (p_j - t_i), row-wise
+    return p_body @ mount  # p_cam = M^T p_body, row-wise
+
+
+def render_cycle(
+    scenario,
+    truth,
+    *,
+    key: PRNGKeyArray,
+    out_dir: str | os.PathLike | None = None,
+    colors: Any = DEFAULT_MARKER_BGR,
+    radius: float = 0.06,
+    blur_sigma: float = 0.8,
+    noise_sigma: float = 3.0,
+    distractors: int = 4,
+    lighting: float = 0.25,
+) -> dict[str, Any]:
+    r"""Render every image of one simulated cycle.
+
+    At each step `k` of the cycle: C1's PTZ image (markers of C2, C3), C2's and C3's
+    omnidirectional images (the two other ground robots), and the overhead camera's image
+    (all three). Robot `i`'s marker has colour `colors[i]` (C1, C2, C3).
+
+    **Arguments:**
+
+    - `scenario`: the [`jaxloc.Scenario`][] (cameras, strategy).
+    - `truth`: the [`jaxloc.CycleTruth`][] of [`jaxloc.simulate_cycle`][].
+    - `key`: JAX PRNG key. Keyword only, as are the following.
+    - `out_dir`: if given, write `step{k}_{camera}.png` (camera `C`, `C1`, `C2`, `C3`)
+      and `truth.json` there.
+    - other arguments: as [`jaxloc.render_markers`][].
+
+    **Returns:** `{"images": {(k, cam): uint8 image}, "truth": {...}}` where `truth`
+    holds, per image, each marker's `center_px`/`centroid_px`/`visible`, and the true
+    poses (`T_world_body` `(steps, 3, 7)` wxyz_xyz, `T_world_overhead`) and move
+    distances.
+    """
+    poses = truth.poses
+    steps = poses.T_world_body.wxyz_xyz.shape[0]
+    keys = jr.split(key, steps * 4)
+    images: dict[tuple[int, str], np.ndarray] = {}
+    per_image: dict[str, Any] = {}
+    names = ("C1", "C2", "C3")
+    T_over = poses.T_world_overhead
+    R_o, t_o = _rt(np.asarray(T_over.wxyz_xyz))
+    for k in range(steps):
+        p_world = np.asarray(poses.T_world_body.wxyz_xyz[k])[:, 4:]
+        p_over = (p_world - t_o) @ R_o
+        jobs = [("C", scenario.overhead, p_over, (0, 1, 2))]
+        jobs.append(("C1", scenario.ptz, _rel_in_camera(poses.T_world_body, k, 0, R_BODY_PTZ),
+                     (1, 2)))  # fmt: skip
+        jobs.append(("C2", scenario.omni2, _rel_in_camera(poses.T_world_body, k, 1, R_BODY_OMNI),
+                     (0, 2)))  # fmt: skip
+        jobs.append(("C3", scenario.omni3, _rel_in_camera(poses.T_world_body, k, 2, R_BODY_OMNI),
+                     (0, 1)))  # fmt: skip
+        for c, (cam_name, camera, pts, seen) in enumerate(jobs):
+            sel = list(seen)
+            extra: dict[str, Any] = {}
+            img, t = render_markers(
+                camera, pts[sel], key=keys[4 * k + c], colors=[colors[j] for j in sel],
+                radius=radius, blur_sigma=blur_sigma, noise_sigma=noise_sigma,
+                distractors=distractors, lighting=lighting, names=[names[j] for j in sel],
+                info=extra,
+            )  # fmt: skip
+            images[(k, cam_name)] = img
+            per_image[f"step{k}_{cam_name}"] = {"step": k, "camera": cam_name, "markers": t,
+                                                "distractors": extra["distractors"]}  # fmt: skip
+    gt = {
+        "strategy": scenario.strategy,
+        "marker_radius_m": radius,
+        "marker_bgr": {n: list(c) for n, c in zip(names, colors)},
+        "T_world_body_wxyz_xyz": np.asarray(poses.T_world_body.wxyz_xyz).tolist(),
+        "T_world_overhead_wxyz_xyz": np.asarray(T_over.wxyz_xyz).tolist(),
+        "move_distances_m": np.asarray(truth.move_distances).tolist(),
+        "images": per_image,
+    }
+    if out_dir is not None:
+        out_dir = os.fspath(out_dir)
+        os.makedirs(out_dir, exist_ok=True)
+        for (k, cam_name), img in images.items():
+            path = os.path.join(out_dir, f"step{k}_{cam_name}.png")
+            if not cv2.imwrite(path, img):
+                raise ValueError(f"Could not write image `{path}`.")
+        with open(os.path.join(out_dir, "truth.json"), "w", encoding="utf-8") as f:
+            json.dump(gt, f, indent=1)
+    return {"images": images, "truth": gt}
+
+
+# --------------------------------------------------------------------------------------
+# Chessboards.
+
+
+@eqx.filter_jit
+def _board_coords(camera: AbstractCamera, T_board_cam: jaxlie.SE3, pixels: Float[Array, "n 2"]):
+    """Board-plane coordinates `(n, 2)` (m) hit by the rays of `pixels`, and whether the
+    ray hits the board's front (z = 0 plane, ray going towards it)."""
+    b = camera.unproject(pixels)  # camera frame
+    R = T_board_cam.rotation().as_matrix()
+    o = T_board_cam.translation()
+    d = b @ R.T  # ray directions in the board frame
+    dz = d[:, 2]
+    ok = dz * o[2] < 0
+    t = jnp.where(ok, -o[2] / jnp.where(ok, dz, 1.0), 0.0)
+    xy = o[None, :2] + t[:, None] * d[:, :2]
+    return xy, ok
+
+
+_CHUNK = 32768
+
+
+def _board_coords_chunked(camera, T_board_cam, pix: np.ndarray):
+    n = pix.shape[0]
+    xy_out, ok_out = np.empty((n, 2)), np.empty(n, bool)
+    for a in range(0, n, _CHUNK):
+        part = pix[a : a + _CHUNK]
+        m = part.shape[0]
+        padded = np.zeros((_CHUNK, 2))
+        padded[:m] = part
+        xy, ok = _board_coords(camera, T_board_cam, jnp.asarray(padded))
+        xy_out[a : a + m] = np.asarray(xy)[:m]
+        ok_out[a : a + m] = np.asarray(ok)[:m]
+    return xy_out, ok_out
+
+
+def render_chessboard(
+    camera: AbstractCamera,
+    T_cam_board: jaxlie.SE3,
+    board: tuple[int, int],
+    square: float,
+    *,
+    key: PRNGKeyArray | None = None,
+    supersample: int = 3,
+    blur_sigma: float = 0.5,
+    noise_sigma: float = 2.0,
+    border: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""Render a planar chessboard seen through a camera model (grey `uint8` image).
+
+    The board frame has its origin at the first inner corner, x along the columns, y
+    along the rows, z out of the board's back (OpenCV's object-point convention:
+    corner `(row, col)` at `(col * square, row * square, 0)`). The printed pattern has
+    `cols + 1` by `rows + 1` squares (the corner square is black) plus a white margin of
+    `border` squares.
+
+    **Arguments:**
+
+    - `camera`: any jaxloc camera.
+    - `T_cam_board`: pose of the board in the camera frame (`p_cam = T @ p_board`).
+    - `board`: inner corners `(cols, rows)`, as `cv2.findChessboardCorners`' `patternSize`.
+    - `square`: square size (m).
+    - `key`: JAX PRNG key for the sensor noise (no noise if `None`). Keyword only.
+    - `supersample`: rays per pixel side (anti-aliasing).
+    - `blur_sigma`, `noise_sigma`: as [`jaxloc.render_markers`][].
+    - `border`: white margin around the squares, in squares.
+
+    **Returns:** `(image, corners_px, object_points)`: the image `(height, width)`,
+    the true corners' pixels `(rows * cols, 2)` in OpenCV's order (row-major, row 0
+    first), NaN where a corner is not visible, and the object points `(rows * cols, 3)`.
+    """
+    cols, rows = board
+    w, h = camera.image_size
+    s = int(supersample)
+    off = (np.arange(s) + 0.5) / s - 0.5
+    T_board_cam = T_cam_board.inverse()
+    # Only the pixels near the board's image are traced (its outline, margin included,
+    # projected through the camera), in fixed-size chunks: one compilation per camera.
+    t = np.linspace(0.0, 1.0, 64)
+    lo_x, hi_x = (-1 - border) * square, (cols + border) * square
+    lo_y, hi_y = (-1 - border) * square, (rows + border) * square
+    edge = np.concatenate([
+        np.stack([lo_x + t * (hi_x - lo_x), np.full_like(t, lo_y)], -1),
+        np.stack([lo_x + t * (hi_x - lo_x), np.full_like(t, hi_y)], -1),
+        np.stack([np.full_like(t, lo_x), lo_y + t * (hi_y - lo_y)], -1),
+        np.stack([np.full_like(t, hi_x), lo_y + t * (hi_y - lo_y)], -1),
+    ])  # fmt: skip
+    edge3 = np.c_[edge, np.zeros(len(edge))]
+    p_edge = np.asarray(jax.vmap(lambda q: T_cam_board @ q)(jnp.asarray(edge3)))
+    uv_edge = np.asarray(camera.project(jnp.asarray(p_edge)))
+    if np.all(np.asarray(camera.projectable(jnp.asarray(p_edge)))):
+        x0 = int(max(np.floor(uv_edge[:, 0].min()) - 4, 0))
+        x1 = int(min(np.ceil(uv_edge[:, 0].max()) + 5, w))
+        y0 = int(max(np.floor(uv_edge[:, 1].min()) - 4, 0))
+        y1 = int(min(np.ceil(uv_edge[:, 1].max()) + 5, h))
+    else:
+        x0, y0, x1, y1 = 0, 0, w, h
+    img = np.full((h, w), 90.0)
+    if x1 > x0 and y1 > y0:
+        uu, vv = np.meshgrid(np.arange(x0, x1, dtype=np.float64),
+                             np.arange(y0, y1, dtype=np.float64))  # fmt: skip
+        acc = np.zeros(uu.size)
+        for dy in off:
+            for dx in off:
+                pix = np.stack([(uu + dx).ravel(), (vv + dy).ravel()], -1)
+                xy, ok = _board_coords_chunked(camera, T_board_cam, pix)
+                xy = xy / square
+                i = np.floor(xy[:, 0]).astype(np.int64)
+                j = np.floor(xy[:, 1]).astype(np.int64)
+                inside = ((xy[:, 0] >= -1) & (xy[:, 0] < cols) & (xy[:, 1] >= -1)
+                          & (xy[:, 1] < rows))  # fmt: skip
+                margin = ((xy[:, 0] >= -1 - border) & (xy[:, 0] < cols + border)
+                          & (xy[:, 1] >= -1 - border) & (xy[:, 1] < rows + border))  # fmt: skip
+                black = inside & ((i + j) % 2 == 0)
+                acc += np.where(ok & margin, np.where(black, 20.0, 235.0), 90.0)
+        img[y0:y1, x0:x1] = acc.reshape(uu.shape) / (s * s)
+    rng = numpy_rng(key) if key is not None else np.random.default_rng(0)
+    out = _finish(img.astype(np.float32), rng, blur_sigma, noise_sigma if key is not None else 0.0,
+                  None)  # fmt: skip
+    jj, ii = np.mgrid[0:rows, 0:cols]
+    obj = np.stack([ii.ravel() * square, jj.ravel() * square, np.zeros(rows * cols)], -1)
+    p_cam = np.asarray(jax.vmap(lambda q: T_cam_board @ q)(jnp.asarray(obj)))
+    corners = np.asarray(camera.project(jnp.asarray(p_cam)))
+    vis = np.asarray(camera.in_view(jnp.asarray(p_cam))) if not isinstance(camera, OmniCamera) \
+        else np.asarray(camera.projectable(jnp.asarray(p_cam)))  # fmt: skip
+    corners = np.where(vis[:, None], corners, np.nan)
+    return out, corners, obj
+
+
+def _polygon_area_centroid(poly: np.ndarray) -> tuple[float, np.ndarray]:
+    x, y = poly[:, 0], poly[:, 1]
+    x1, y1 = np.roll(x, -1), np.roll(y, -1)
+    cross = x * y1 - x1 * y
+    a = 0.5 * cross.sum()
+    if abs(a) < 1e-12:
+        return 0.0, poly.mean(0)
+    cx = ((x + x1) * cross).sum() / (6 * a)
+    cy = ((y + y1) * cross).sum() / (6 * a)
+    return abs(a), np.array([cx, cy])
+
+
+@eqx.filter_jit
+def _unproject1(camera: AbstractCamera, uv: Float[Array, "2"]) -> Float[Array, "3"]:
+    return camera.unproject(uv)
+
+
+def sphere_center_pixel(
+    camera: AbstractCamera, centroid: Float[ArrayLike, "2"], area: float, iterations: int = 3
+) -> np.ndarray:
+    r"""Pixel of a spherical marker's centre from the centroid and area of its blob.
+
+    An off-axis sphere images as an (approximately) elliptical blob whose centroid is not
+    the projection of the sphere's centre (the outline is the image of the tangent cone,
+    wider on the side away from the axis); the offset grows with the angular radius
+    squared and with the lens' nonlinearity: 0.2--0.5 px for the paper's cameras at 1--2 m
+    with a 6 cm marker. Solved through the camera model: the angular radius from the blob
+    area, then fixed-point iterations on the centre direction so that the silhouette's
+    area centroid matches the measured one. Works for any central camera model.
+
+    **Arguments:** `camera`; `centroid` `(u, v)` px; `area` of the blob (px^2);
+    `iterations` of the fixed point.
+
+    **Returns:** the corrected pixel `(2,)`.
+    """
+    c = np.asarray(centroid, np.float64)
+    x = c.copy()
+    a = np.asarray(_unproject1(camera, jnp.asarray(x)))
+    probe = 0.01
+    poly, _, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0), 10.0 * math.sin(probe))
+    a1, _ = _polygon_area_centroid(np.asarray(poly[0]))
+    if not bool(ok[0]) or a1 <= 0 or not area > 0:
+        return c
+    alpha = probe * math.sqrt(area / a1)
+    if not alpha < 0.5:
+        return c
+    r = 10.0 * math.sin(alpha)
+    for _ in range(iterations):
+        a = np.asarray(_unproject1(camera, jnp.asarray(x)))
+        poly, center, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0), r)
+        if not bool(ok[0]):
+            return c
+        _, cen = _polygon_area_centroid(np.asarray(poly[0]))
+        x = x + (c - cen)
+    return x
