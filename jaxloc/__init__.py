@@ -10,6 +10,14 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from ._cameras.files import (
+    camera_from_dict as camera_from_dict,
+    camera_from_kalibr as camera_from_kalibr,
+    camera_to_dict as camera_to_dict,
+    camera_to_kalibr as camera_to_kalibr,
+    load_camera as load_camera,
+    save_camera as save_camera,
+)
 from ._cameras.models import (
     AbstractCamera as AbstractCamera,
     OmniCamera as OmniCamera,
@@ -87,11 +95,10 @@ from ._refine.model import (
     placement_ids as placement_ids,
 )
 from ._refine.pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
-from ._sim.scenario import (
-    astype as astype,
+from ._sim.scenario import astype as astype, Scenario as Scenario
+from ._sim.scenario_file import (
     load_scenario as load_scenario,
     save_scenario as save_scenario,
-    Scenario as Scenario,
     scenario_from_dict as scenario_from_dict,
     scenario_to_dict as scenario_to_dict,
 )
@@ -146,16 +153,19 @@ from ._vision.calibrate import (
     calibrate_omni_corners as calibrate_omni_corners,
     calibrate_pinhole as calibrate_pinhole,
     Calibration as Calibration,
-    camera_from_dict as camera_from_dict,
-    camera_from_kalibr as camera_from_kalibr,
-    camera_to_dict as camera_to_dict,
-    camera_to_kalibr as camera_to_kalibr,
     find_corners as find_corners,
-    load_camera as load_camera,
     object_points as object_points,
     omni_initial_guess as omni_initial_guess,
     parse_board as parse_board,
-    save_camera as save_camera,
+)
+from ._vision.localize import (
+    detect_team_images as detect_team_images,
+    ImageLocalization as ImageLocalization,
+    localize_images as localize_images,
+    observations_from_detections as observations_from_detections,
+    ptz_equivalent as ptz_equivalent,
+    scenario_for as scenario_for,
+    team_from_rendered as team_from_rendered,
 )
 from ._vision.markers import (
     annulus_mask as annulus_mask,
@@ -173,18 +183,7 @@ from ._vision.render import (
     render_markers as render_markers,
     sphere_center_pixel as sphere_center_pixel,
 )
-from ._vision.team import (
-    detect_team_images as detect_team_images,
-    ImageLocalization as ImageLocalization,
-    load_team as load_team,
-    localize_images as localize_images,
-    observations_from_detections as observations_from_detections,
-    ptz_equivalent as ptz_equivalent,
-    save_team as save_team,
-    scenario_for as scenario_for,
-    Team as Team,
-    team_from_rendered as team_from_rendered,
-)
+from ._vision.team import load_team as load_team, save_team as save_team, Team as Team
 
 
 __version__ = "0.1.0"

@@ -15,16 +15,14 @@ import jaxloc
 import numpy as np
 import pytest
 import yaml
+from jaxloc._cameras.files import camera_from_kalibr, load_camera, save_camera
 from jaxloc._cli.images import register
 from jaxloc._vision.calibrate import (
     calibrate_pinhole,
-    camera_from_kalibr,
     find_corners,
-    load_camera,
     object_points,
     omni_initial_guess,
     parse_board,
-    save_camera,
 )
 from jaxloc._vision.render import render_chessboard
 

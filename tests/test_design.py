@@ -25,7 +25,8 @@ from jaxloc._design.search import (
     rmse_ci,
     rmse_table,
 )
-from jaxloc._sim.scenario import load_scenario, save_scenario, Scenario
+from jaxloc._sim.scenario import Scenario
+from jaxloc._sim.scenario_file import load_scenario, save_scenario
 from jaxloc._sim.simulate import simulate_cycle
 
 

@@ -14,8 +14,9 @@ import jaxloc
 import numpy as np
 import pytest
 import yaml
+from jaxloc._vision.localize import _localize, localize_images, team_from_rendered
 from jaxloc._vision.render import render_cycle
-from jaxloc._vision.team import _localize, load_team, localize_images, team_from_rendered
+from jaxloc._vision.team import load_team
 
 
 # The paper's world and cameras, with the triangle's legs at 1.8 m (the paper's 1.5 m puts
@@ -214,7 +215,7 @@ def test_ambiguous_refinement_reports_the_better_pose_with_a_note(cycle, monkeyp
     """An `ambiguous` refinement (two distinct minima within chi-square 4) is reported, not
     dropped, and the note gives both costs. The refinement is stubbed: it returns the
     closed-form poses flagged `ambiguous` (real ambiguous cycles: tests/test_multistart)."""
-    import jaxloc._vision.team as frontend
+    import jaxloc._vision.localize as frontend
 
     def ambiguous_refine(observations, scenario, estimate, **kwargs):
         stats = dict(estimate.stats, chi2=jnp.asarray(11.5), runner_up_chi2=jnp.asarray(13.0))

@@ -10,11 +10,10 @@ import pytest
 import yaml
 from jaxloc._cameras.models import OmniCamera, PinholeCamera
 from jaxloc._cameras.presets import paper_ptz_camera
-from jaxloc._sim.scenario import (
-    astype,
+from jaxloc._sim.scenario import astype, Scenario
+from jaxloc._sim.scenario_file import (
     load_scenario,
     save_scenario,
-    Scenario,
     scenario_from_dict,
     scenario_to_dict,
 )

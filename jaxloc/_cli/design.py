@@ -109,7 +109,8 @@ def _cmd_design(args) -> int:
 
     from .._design.formation import Formation, Limits, paper_fixed_moves
     from .._design.search import design_formation, evaluate_formation, objective_value, rmse_table
-    from .._sim.scenario import load_scenario, save_scenario, Scenario
+    from .._sim.scenario import Scenario
+    from .._sim.scenario_file import load_scenario, save_scenario
 
     for name in ("starts", "draws", "iterations"):
         if getattr(args, name) < 1:
@@ -126,7 +127,7 @@ def _cmd_design(args) -> int:
     if args.scenario:
         scenario = load_scenario(args.scenario)
         if args.strategy and args.strategy != scenario.strategy:
-            from .._sim.scenario import scenario_from_dict, scenario_to_dict
+            from .._sim.scenario_file import scenario_from_dict, scenario_to_dict
 
             d = scenario_to_dict(scenario)
             d["strategy"] = args.strategy

@@ -11,7 +11,8 @@ import os
 
 
 def _cmd_calibrate(args) -> int:
-    from .._vision.calibrate import calibrate_omni, calibrate_pinhole, parse_board, save_camera
+    from .._cameras.files import save_camera
+    from .._vision.calibrate import calibrate_omni, calibrate_pinhole, parse_board
 
     board = parse_board(args.board)
     if not (math.isfinite(args.square) and args.square > 0):
@@ -54,7 +55,8 @@ def _cmd_calibrate(args) -> int:
 
 
 def _cmd_localize(args) -> int:
-    from .._vision.team import load_team, localize_images, write_json_atomic
+    from .._vision.localize import localize_images, write_json_atomic
+    from .._vision.team import load_team
 
     team = load_team(args.team)
     res = localize_images(team, refine=not args.no_refine)

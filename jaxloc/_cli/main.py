@@ -321,7 +321,7 @@ def _cmd_table1(args) -> int:
 
 
 def _cmd_simulate(args) -> int:
-    from .._sim.scenario import load_scenario
+    from .._sim.scenario_file import load_scenario
 
     scenario = load_scenario(args.scenario)
     return _run({scenario.strategy: scenario}, args, f"jaxloc simulate — {args.scenario}")

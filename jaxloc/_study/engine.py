@@ -25,7 +25,8 @@ import jax.random as jr
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
-from .._sim.scenario import Scenario, scenario_to_dict
+from .._sim.scenario import Scenario
+from .._sim.scenario_file import scenario_to_dict
 from .stats import StreamingSummary
 from .trial import METHODS, run_trial
 

@@ -1,0 +1,427 @@
+r"""Localization from a team's images: marker detections -> observations -> poses.
+
+The image front end produces the same [`jaxloc.CycleObservations`][] the simulator does
+(DESIGN §6), so the estimators are unchanged: [`jaxloc.localize_cycle`][], then (if asked)
+[`jaxloc.refine_cycle`][] and [`jaxloc.cycle_covariance`][]. The team file is read by
+[`jaxloc.load_team`][] (`jaxloc._vision.team`).
+
+**What is measured.** At step `k`: C1's image gives the bearings of C2 and C3, C2's of C1
+and C3, C3's of C1 and C2 (all required: mutual localization needs all six), and C's
+image the overhead bearings of all three (at least four distinct robot placements
+over the cycle must be seen). A required marker that is missing, an ambiguous colour
+(two blobs pass every test), an unreadable image or a failed estimate raise a
+`ValueError` naming the team-file field and the value: never a wrong pose.
+
+**PTZ and refinement.** A [`jaxloc.Scenario`][] holds C1's camera as a
+[`jaxloc.PTZCamera`][] (square pixels, centred principal point, no distortion), which a
+calibrated pinhole generally is not. The refinement therefore sees C1's detections
+re-projected into the *equivalent ideal* PTZ camera (same pan/tilt, focal length
+`sqrt(fx fy)`): pixel -> calibrated bearing -> ideal pixel. Bearings and residual scale
+are preserved to first order.
+"""
+
+import dataclasses
+import json
+import math
+import os
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+
+from .._cameras.models import OmniCamera, PTZCamera
+from .._cameras.presets import R_BODY_OMNI, R_BODY_PTZ
+from .._core.poses import ypr_from_rotation
+from .._core.results import RESULTS, status_code, status_names
+from .._cycle.observations import CycleObservations, num_steps
+from .._refine.covariance import cycle_covariance
+from .._refine.cycle import refine_cycle
+from .._sim.scenario import Scenario
+from .._solvers.strategies import localize_cycle, overhead_point_ids
+from .markers import (
+    annulus_mask,
+    check_image,
+    DEFAULT_MARKER_COLORS,
+    detect_markers,
+    MarkerColor,
+    MarkerDetection,
+    read_image,
+)
+from .render import annulus_of, sphere_center_pixel
+from .team import GROUND, ROBOTS, save_team, Team
+
+
+# Which robots each camera sees: (observer, targets).
+_SEES = {"C": GROUND, "C1": ("C2", "C3"), "C2": ("C1", "C3"), "C3": ("C1", "C2")}
+
+
+def ptz_equivalent(team: Team) -> PTZCamera:
+    """The ideal [`jaxloc.PTZCamera`][] standing in for C1's calibrated camera in the
+    refinement (same pan, tilt, image size; focal length `sqrt(fx fy)` at zoom 0)."""
+    cam = team.cameras["C1"]
+    w, h = cam.image_size
+    f = math.sqrt(float(cam.fx) * float(cam.fy))
+    hfov = 2.0 * math.atan(0.5 * w / f)
+    return PTZCamera(pan=team.pan, tilt=team.tilt, zoom=0.0, hfov_wide=hfov,
+                     hfov_tele=0.5 * hfov, image_size=(w, h))  # fmt: skip
+
+
+def scenario_for(team: Team) -> Scenario:
+    """The [`jaxloc.Scenario`][] the refinement and the covariance need: the team's
+    cameras (C1 as [`jaxloc.ptz_equivalent`][]), Gaussian pixel noise of
+    `team.pixel_sigma` per axis, `team.odometry_sigma_rel`, the strategy."""
+    return Scenario(
+        overhead=team.cameras["C"], ptz=ptz_equivalent(team), omni2=team.cameras["C2"],
+        omni3=team.cameras["C3"], pixel_sigma=team.pixel_sigma, noise_model="gaussian",
+        odometry_sigma_rel=team.odometry_sigma_rel, strategy=team.strategy,
+    )  # fmt: skip
+
+
+def _mask_for(team: Team, robot: str, shape_hw) -> np.ndarray | None:
+    cam = team.cameras[robot]
+    if not isinstance(cam, OmniCamera):
+        return None
+    margin = float(team.detection.get("annulus_margin_px", 3.0))
+    h, w = shape_hw
+    return annulus_mask((w, h), annulus_of(cam, margin))
+
+
+def detect_team_images(
+    team: Team, images: dict[tuple[int, str], np.ndarray] | None = None
+) -> dict[tuple[int, str], dict[str, MarkerDetection]]:
+    """Detect every required marker in every image of the cycle.
+
+    **Arguments:**
+
+    - `team`: a [`jaxloc.Team`][].
+    - `images`: optional `{(step, robot): BGR image}`; by default read from `team.steps`.
+
+    **Returns:** `{(step, observer): {target: MarkerDetection}}`. Raises `ValueError`
+    naming the image for an unreadable or wrongly sized image, a missing required marker or
+    an ambiguous colour (unless `detection.on_ambiguous` is `largest`).
+    """
+    steps = num_steps(team.strategy)
+    keys = ("min_area", "max_area", "max_elongation", "min_fill", "min_solidity")
+    opts = {k: team.detection[k] for k in keys if k in team.detection}
+    out = {}
+    masks: dict[str, np.ndarray | None] = {}
+    for k in range(steps):
+        for obs in ROBOTS:
+            field = f"steps[{k}].{obs}"
+            if images is not None:
+                if (k, obs) not in images:
+                    raise ValueError(f"`images` has no image for {field}.")
+                img = check_image(images[(k, obs)], f"image {field}")
+                label = field
+            else:
+                if team.steps is None:
+                    raise ValueError("`team.steps` lists no image files; pass `images`.")
+                p = team.steps[k][obs]
+                label = f"{field} (`{p}`)"
+                try:
+                    img = read_image(p)
+                except (ValueError, FileNotFoundError) as err:
+                    raise type(err)(f"`{team.source}: {field}`: {err}") from None
+            w, h = team.cameras[obs].image_size
+            if img.shape[:2] != (h, w):
+                raise ValueError(
+                    f"Image {label} is {img.shape[1]}x{img.shape[0]} px but robot {obs}'s "
+                    f"camera is calibrated for {w}x{h}."
+                )
+            if obs not in masks:
+                masks[obs] = _mask_for(team, obs, img.shape[:2])
+            colors = {t: team.markers[t] for t in _SEES[obs]}
+            det = detect_markers(img, colors, mask=masks[obs], **opts)
+            if team.detection.get("sphere_correction", True):
+                # Spherical markers: centroid -> projection of the sphere's centre.
+                det = {
+                    t: dataclasses.replace(
+                        d, pixel=sphere_center_pixel(team.cameras[obs], d.pixel, d.area)
+                    ) if d.detected else d
+                    for t, d in det.items()
+                }  # fmt: skip
+            for t, dt in det.items():
+                if dt.candidates > 1 and team.detection.get("on_ambiguous", "error") == "error":
+                    raise ValueError(
+                        f"Marker of {t} is ambiguous in image {label}: {dt.candidates} blobs "
+                        f"pass every test for colour `robots.{t}.marker`; refusing to guess "
+                        "(set `detection.on_ambiguous: largest` to take the largest)."
+                    )
+                if obs != "C" and dt.detected and dt.truncated:
+                    raise ValueError(
+                        f"Marker of {t} is cut by the edge of image {label} (image border or "
+                        "mirror annulus): its centroid would be biased by pixels. Robot "
+                        f"{obs} must see {t} whole at step {k}; re-take the image with {t} "
+                        "further inside the field of view."
+                    )
+                if obs != "C" and not dt.detected:
+                    raise ValueError(
+                        f"Marker of {t} (colour `robots.{t}.marker` = "
+                        f"{_color_text(team.markers[t])}) "
+                        f"was not found in image {label}: robot {obs} must see {t} at step {k} "
+                        "(mutual localization needs all six bearings)."
+                    )
+            out[(k, obs)] = det
+    return out
+
+
+def _color_text(c: MarkerColor) -> str:
+    return f"hue {c.hue_low}..{c.hue_high}, sat >= {c.sat_min}, val >= {c.val_min}"
+
+
+def observations_from_detections(
+    team: Team, detections: dict[tuple[int, str], dict[str, MarkerDetection]]
+) -> CycleObservations:
+    """Bearings (body frames for the ground robots, camera frame for C), pixels and
+    odometry of one cycle from its detections. C1's `mutual_pixels` are expressed in
+    [`jaxloc.ptz_equivalent`][]'s image (see the module docstring)."""
+    steps = num_steps(team.strategy)
+    idx = {"C1": 0, "C2": 1, "C3": 2}
+    mutual = np.zeros((steps, 3, 3, 3))
+    mpix = np.full((steps, 3, 3, 2), np.nan)
+    over = np.zeros((steps, 3, 3))
+    over_vis = np.zeros((steps, 3), bool)
+    opix = np.full((steps, 3, 2), np.nan)
+    ptz = ptz_equivalent(team)
+    R_base_opt = np.asarray(ptz.optical_rotation().as_matrix())
+    for k in range(steps):
+        for obs in GROUND:
+            i = idx[obs]
+            for t, dt in detections[(k, obs)].items():
+                j = idx[t]
+                b = np.asarray(_unproject(team.cameras[obs], jnp.asarray(dt.pixel)))
+                if obs == "C1":
+                    b_base = R_base_opt @ b
+                    mutual[k, i, j] = R_BODY_PTZ @ b_base
+                    mpix[k, i, j] = np.asarray(_project(ptz, jnp.asarray(b_base)))
+                else:
+                    mutual[k, i, j] = R_BODY_OMNI @ b
+                    mpix[k, i, j] = dt.pixel
+        for t, dt in detections[(k, "C")].items():
+            # A marker cut by the image border would bias C's pose: dropped (the
+            # overhead solve has redundancy; too few remaining placements raise below).
+            if dt.detected and not dt.truncated:
+                j = idx[t]
+                over[k, j] = np.asarray(_unproject(team.cameras["C"], jnp.asarray(dt.pixel)))
+                over_vis[k, j] = True
+                opix[k, j] = dt.pixel
+    # Distinct robot placements seen by C (robots that did not move keep theirs).
+    ids = overhead_point_ids(team.strategy)
+    seen = {int(ids[k, j]) for k in range(steps) for j in range(3) if over_vis[k, j]}
+    if len(seen) < 4:
+        raise ValueError(
+            f"The overhead camera C saw only {len(seen)} distinct robot placements over the "
+            f"cycle (markers found: {int(over_vis.sum())} of {3 * steps}); at least 4 are "
+            "needed for an unambiguous pose. Check the `steps[*].C` images and the marker "
+            "colours."
+        )
+    return CycleObservations(
+        mutual=jnp.asarray(mutual), overhead=jnp.asarray(over), odometry=jnp.asarray(team.odometry),
+        odometry_sigma=jnp.asarray(team.odometry_sigma_rel * team.odometry),
+        strategy=team.strategy, overhead_visible=jnp.asarray(over_vis),
+        mutual_pixels=jnp.asarray(mpix), overhead_pixels=jnp.asarray(opix),
+    )  # fmt: skip
+
+
+@eqx.filter_jit
+def _unproject(camera, uv):
+    # Jitted: an eager `unproject` recompiles its undistortion loops at every call.
+    return camera.unproject(uv)
+
+
+@eqx.filter_jit
+def _project(camera, p):
+    return camera.project(p)
+
+
+@eqx.filter_jit
+def _localize(observations: CycleObservations):
+    return localize_cycle(observations, throw=False)
+
+
+@eqx.filter_jit
+def _covariance(observations, scenario, estimate):
+    return cycle_covariance(observations, scenario, estimate)
+
+
+@dataclasses.dataclass
+class ImageLocalization:
+    """Result of [`jaxloc.localize_images`][].
+
+    **Fields:** `estimate` (the [`jaxloc.CycleEstimate`][] reported: refined if
+    refinement ran and succeeded), `closed_form` (the closed-form estimate),
+    `covariance` (a [`jaxloc.CycleCovariance`][] or `None`), `observations`,
+    `detections`, `method` (`"refined"` or `"closed_form"`), `notes`.
+    """
+
+    estimate: Any
+    closed_form: Any
+    covariance: Any
+    observations: CycleObservations
+    detections: dict[tuple[int, str], dict[str, MarkerDetection]]
+    method: str
+    notes: list[str]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready report: the four end-of-cycle poses (position m, quaternion wxyz,
+        yaw/pitch/roll deg, covariances when available) in the world frame (C1's body
+        frame at the start of the cycle), every robot's positions at every step, the
+        detections, status and diagnostics."""
+        poses = self.estimate.poses
+        Tb = np.asarray(poses.T_world_body.wxyz_xyz)
+        To = np.asarray(poses.T_world_overhead.wxyz_xyz)
+        out_poses: dict[str, Any] = {}
+        for n, (name, T) in enumerate([("C", To), ("C1", Tb[-1, 0]), ("C2", Tb[-1, 1]),
+                                       ("C3", Tb[-1, 2])]):  # fmt: skip
+            R = jaxlie.SO3(jnp.asarray(T[:4]))
+            entry = {"position_m": T[4:].tolist(), "quaternion_wxyz": T[:4].tolist(),
+                     "ypr_deg": np.asarray(ypr_from_rotation(R)).tolist()}  # fmt: skip
+            if name == "C":
+                entry["frame"] = "optical (x right, y down, z forward)"
+            if self.covariance is not None and bool(self.covariance.ok):
+                P = np.asarray(self.covariance.position[n])
+                Q = np.asarray(self.covariance.rotation[n])
+                entry["position_cov_m2"] = P.tolist()
+                entry["position_std_m"] = np.sqrt(np.maximum(np.diag(P), 0)).tolist()
+                entry["rotation_cov_rad2"] = Q.tolist()
+            out_poses[name] = entry
+        dets = {}
+        for (k, obs), d in sorted(self.detections.items()):
+            dets[f"steps[{k}].{obs}"] = {
+                t: {"pixel": None if not v.detected else v.pixel.tolist(),
+                    "detected": v.detected, "spread_px": None if not v.detected else v.spread,
+                    "area_px": v.area}  # fmt: skip
+                for t, v in d.items()
+            }
+        code = int(status_code(self.estimate.result))
+        return {
+            "frame": "W = body frame of C1 at the start of the cycle (x forward, y left, z up); m",
+            "strategy": self.observations.strategy,
+            "method": self.method,
+            "status": status_names()[code],
+            "poses": out_poses,
+            "positions_m": {r: Tb[:, i, 4:].tolist() for i, r in enumerate(GROUND)},
+            "stats": {k: np.asarray(v).tolist() for k, v in self.estimate.stats.items()},
+            "detections": dets,
+            "notes": self.notes,
+        }
+
+
+def localize_images(
+    team: Team,
+    images: dict[tuple[int, str], np.ndarray] | None = None,
+    *,
+    refine: bool = True,
+    covariance: bool = True,
+) -> ImageLocalization:
+    r"""Poses of the whole team from one cycle's images.
+
+    Detection ([`jaxloc.detect_team_images`][]) -> [`jaxloc.CycleObservations`][] ->
+    [`jaxloc.localize_cycle`][] (closed form, robust overhead solver) -> optionally
+    [`jaxloc.refine_cycle`][] (joint ML over every pixel and odometry distance, weights
+    from `team.pixel_sigma`) and [`jaxloc.cycle_covariance`][].
+
+    **Arguments:**
+
+    - `team`: a [`jaxloc.Team`][] (e.g. [`jaxloc.load_team`][]).
+    - `images`: optional `{(step, robot): BGR image}`; default: `team.steps`' files.
+    - `refine`, `covariance`: run the refinement / the covariance. Keyword only.
+
+    **Returns:** an [`jaxloc.ImageLocalization`][]. Raises `ValueError` if detection fails
+    (see [`jaxloc.detect_team_images`][]) or the closed-form estimate fails (its status is
+    named), or if the refined fit is statistically inconsistent with `team.pixel_sigma`
+    (`inconsistent_fit`: an outlier detection, a wrong camera file or a too small sigma).
+    If the refinement is `ambiguous` (two poses fit about equally well), the better one is
+    reported and `notes` says so. If the refinement fails otherwise (e.g. iteration
+    limit), the closed-form estimate is reported and the reason recorded in `notes`.
+    """
+    detections = detect_team_images(team, images)
+    observations = observations_from_detections(team, detections)
+    closed = _localize(observations)
+    code = int(status_code(closed.result))
+    if code != 0:
+        raise ValueError(
+            f"Localization from the images of `{team.source}` failed: "
+            f"{status_names()[code]} ({RESULTS[closed.result]}). No pose is reported."
+        )
+    notes: list[str] = []
+    estimate, method, cov = closed, "closed_form", None
+    if refine:
+        scenario = scenario_for(team)
+        refined = refine_cycle(observations, scenario, closed, throw=False)
+        rcode = int(status_code(refined.result))
+        if rcode == 0:
+            estimate, method = refined, "refined"
+        elif rcode == int(status_code(RESULTS.ambiguous)):
+            estimate, method = refined, "refined"
+            st = refined.stats
+            notes.append(
+                f"Ambiguous: another pose, more than 10 cm away, fits the images almost as "
+                f"well (chi-square {float(st['runner_up_chi2']):.1f} against "
+                f"{float(st['chi2']):.1f}); the better one is reported. Move the robots "
+                "to a less symmetric formation to tell them apart."
+            )
+        elif rcode == int(status_code(RESULTS.inconsistent_fit)):
+            # The measurements do not fit one geometry at the stated noise: a wrong blob
+            # taken for a marker, a wrong camera file, or `pixel_sigma` too small. The
+            # closed-form estimate rests on the same measurements: report no pose.
+            st = refined.stats
+            raise ValueError(
+                f"The images of `{team.source}` are inconsistent: the refined fit has "
+                f"chi-square {float(st['chi2']):.1f} for {int(st['dof'])} degrees of freedom "
+                f"(RMS pixel residual {float(st['rms_pixel_error']):.3f} px against "
+                f"`pixel_sigma` = {team.pixel_sigma} px). Check the detections (a wrong blob "
+                "taken for a marker), the camera files and `pixel_sigma`; `--no-refine` "
+                "gives the closed-form estimate without this check."
+            )
+        else:
+            notes.append(
+                f"Refinement did not succeed ({status_names()[rcode]}); the closed-form "
+                "estimate is reported (check `pixel_sigma` and the detections)."
+            )
+        if covariance and method == "refined":
+            cov = _covariance(observations, scenario, estimate)
+            if not bool(cov.ok):
+                notes.append("The covariance is not available (singular information matrix).")
+    return ImageLocalization(estimate, closed, cov, observations, detections, method, notes)
+
+
+def write_json_atomic(path: str, data: dict[str, Any]) -> None:
+    """Write `data` as JSON to `path` atomically (temporary file, then rename)."""
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=2)
+        f.write("\n")
+    os.replace(tmp, path)
+
+
+def team_from_rendered(
+    scenario: Scenario,
+    observations: CycleObservations,
+    out_dir: str | os.PathLike,
+    *,
+    pixel_sigma: float = 0.3,
+) -> Team:
+    """A [`jaxloc.Team`][] for a cycle rendered by [`jaxloc.render_cycle`][] into
+    `out_dir`: the scenario's cameras (C1's PTZ as its pinhole), the default marker
+    colours, the simulated odometry, the PNG paths; also written there as `team.yaml`
+    with its camera files, ready for `jaxloc localize --team`."""
+    out_dir = os.fspath(out_dir)
+    steps = num_steps(scenario.strategy)
+    team = Team(
+        strategy=scenario.strategy,
+        cameras={"C": scenario.overhead, "C1": scenario.ptz.pinhole(), "C2": scenario.omni2,
+                 "C3": scenario.omni3},
+        markers={"C1": DEFAULT_MARKER_COLORS["red"], "C2": DEFAULT_MARKER_COLORS["green"],
+                 "C3": DEFAULT_MARKER_COLORS["blue"]},
+        odometry=np.asarray(observations.odometry, np.float64),
+        odometry_sigma_rel=float(scenario.odometry_sigma_rel),
+        pixel_sigma=pixel_sigma, pan=float(scenario.ptz.pan), tilt=float(scenario.ptz.tilt),
+        steps=[{r: os.path.join(out_dir, f"step{k}_{r}.png") for r in ROBOTS}
+               for k in range(steps)],
+        source=os.path.join(out_dir, "team.yaml"),
+    )  # fmt: skip
+    save_team(team, os.path.join(out_dir, "team.yaml"))
+    return team
