@@ -1,14 +1,11 @@
 """jaxloc: cooperative localization of a heterogeneous robot team in unknown 3D space.
 
-Importing jaxloc enables JAX's 64-bit mode (`jax_enable_x64`): solvers and statistics
-run in float64 by default. Pass float32 arrays (or cast a scenario with
-`jaxloc.astype(scenario, jnp.float32)`) to run in float32.
+jaxloc computes in the dtype of its inputs and never changes JAX's configuration.
+Solvers and statistics are meant to run in float64: turn on JAX's 64-bit mode before
+creating any array, `jax.config.update("jax_enable_x64", True)` (the `jaxloc` command
+does). Without it, JAX's default float is float32 and so is everything jaxloc builds
+(scenarios, rigs, studies); float32 inputs stay float32 either way.
 """
-
-import jax
-
-
-jax.config.update("jax_enable_x64", True)
 
 from ._cameras.files import (
     camera_from_dict as camera_from_dict,
@@ -33,6 +30,7 @@ from ._cameras.presets import (
     R_BODY_OVERHEAD as R_BODY_OVERHEAD,
     R_BODY_PTZ as R_BODY_PTZ,
 )
+from ._core.batching import map_problems as map_problems
 from ._core.poses import (
     kabsch as kabsch,
     pose_from_opencv as pose_from_opencv,
@@ -50,14 +48,26 @@ from ._core.results import (
     status_messages as status_messages,
     status_names as status_names,
 )
-from ._cycle.observations import (
-    CycleObservations as CycleObservations,
-    CyclePoses as CyclePoses,
+from ._cycle.estimate import (
+    CycleCovariance as CycleCovariance,
+    CycleEstimate as CycleEstimate,
+    CycleStarts as CycleStarts,
+    FitCheck as FitCheck,
+)
+from ._cycle.layout import (
+    CAMERAS as CAMERAS,
     move_start_step as move_start_step,
     moving_robot as moving_robot,
     num_moves as num_moves,
+    num_placements as num_placements,
     num_steps as num_steps,
+    placement_ids as placement_ids,
 )
+from ._cycle.observations import (
+    CycleObservations as CycleObservations,
+    CyclePoses as CyclePoses,
+)
+from ._cycle.rig import Rig as Rig
 from ._design.formation import (
     constraint_margins as constraint_margins,
     constraint_penalty as constraint_penalty,
@@ -82,18 +92,12 @@ from ._design.search import (
     rmse_table as rmse_table,
     simulate_formation as simulate_formation,
 )
-from ._refine.covariance import (
+from ._model.covariance import (
     crlb_rmse as crlb_rmse,
     cycle_covariance as cycle_covariance,
     cycle_crlb as cycle_crlb,
-    CycleCovariance as CycleCovariance,
 )
 from ._refine.cycle import refine_cycle as refine_cycle
-from ._refine.model import (
-    num_placements as num_placements,
-    pixel_sigma_per_axis as pixel_sigma_per_axis,
-    placement_ids as placement_ids,
-)
 from ._refine.pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
 from ._sim.scenario import astype as astype, Scenario as Scenario
 from ._sim.scenario_file import (
@@ -117,17 +121,15 @@ from ._sim.world import (
     SaddleSurface as SaddleSurface,
     SinusoidSurface as SinusoidSurface,
 )
-from ._solvers.dlt import paper_linear_pose as paper_linear_pose, PoseSolution as PoseSolution
+from ._solvers.dlt import paper_linear_pose as paper_linear_pose
+from ._solvers.localize import localize_cycle as localize_cycle
 from ._solvers.mutual import (
     mutual_localization as mutual_localization,
     MutualSolution as MutualSolution,
 )
-from ._solvers.overhead import (
-    map_problems as map_problems,
-    solve_overhead_pose as solve_overhead_pose,
-)
+from ._solvers.overhead import solve_overhead_pose as solve_overhead_pose
 from ._solvers.p3p import p3p as p3p, P3PSolution as P3PSolution
-from ._solvers.strategies import CycleEstimate as CycleEstimate, localize_cycle as localize_cycle
+from ._solvers.pose_problem import PoseSolution as PoseSolution
 from ._study.engine import (
     balanced_chunk_size as balanced_chunk_size,
     MICRO_BATCH as MICRO_BATCH,
@@ -143,7 +145,6 @@ from ._study.stats import (
     summarize as summarize,
 )
 from ._study.trial import (
-    CAMERAS as CAMERAS,
     METHODS as METHODS,
     run_trial as run_trial,
     TrialErrors as TrialErrors,
@@ -163,8 +164,7 @@ from ._vision.localize import (
     ImageLocalization as ImageLocalization,
     localize_images as localize_images,
     observations_from_detections as observations_from_detections,
-    ptz_equivalent as ptz_equivalent,
-    scenario_for as scenario_for,
+    rig_for as rig_for,
     team_from_rendered as team_from_rendered,
 )
 from ._vision.markers import (

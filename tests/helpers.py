@@ -3,8 +3,11 @@
 import equinox as eqx
 import jax.numpy as jnp
 import jaxlie
-import jaxloc._cycle.observations as obs_mod
+import jaxloc
+import jaxloc._cycle.layout as obs_mod
+import jaxloc._cycle.observations as observations_mod
 import numpy as np
+from jaxloc._cycle.rig import mount_pose
 from scipy.spatial.transform import Rotation
 
 
@@ -65,9 +68,9 @@ def random_cycle_truth(rng: np.random.Generator, strategy: str, *, flat: bool = 
     return Rs, ts, R_c, t_c
 
 
-def cycle_poses(Rs, ts, R_c, t_c) -> obs_mod.CyclePoses:
+def cycle_poses(Rs, ts, R_c, t_c) -> observations_mod.CyclePoses:
     wxyz_xyz = np.array([[_se3(Rs[k, r], ts[k, r]) for r in range(3)] for k in range(len(ts))])
-    return obs_mod.CyclePoses(
+    return observations_mod.CyclePoses(
         jaxlie.SE3(jnp.asarray(wxyz_xyz)), jaxlie.SE3(jnp.asarray(_se3(R_c, t_c)))
     )
 
@@ -88,12 +91,23 @@ def exact_arrays(Rs, ts, R_c, t_c, strategy: str, xp=np):
     return mutual, overhead, odometry
 
 
-def exact_observations(Rs, ts, R_c, t_c, strategy: str) -> obs_mod.CycleObservations:
+def exact_observations(Rs, ts, R_c, t_c, strategy: str) -> observations_mod.CycleObservations:
     mutual, overhead, odometry = exact_arrays(Rs, ts, R_c, t_c, strategy)
-    return obs_mod.CycleObservations(
+    return observations_mod.CycleObservations(
         jnp.asarray(mutual),
         jnp.asarray(overhead),
         jnp.asarray(odometry),
         0.01 * jnp.asarray(odometry),
         strategy,
     )
+
+
+def all_seeing_rig() -> jaxloc.Rig:
+    """A rig whose ground cameras see in every direction (the paper's omnidirectional
+    camera, mounted upright, on all three ground robots) and the paper's overhead camera:
+    the random formations of `random_cycle_truth` have random headings, which the PTZ
+    camera's 85 degrees would not cover."""
+    eye = mount_pose(np.eye(3))
+    mounts = jnp.stack([mount_pose(jaxloc.R_BODY_OVERHEAD), eye, eye, eye])
+    omni = jaxloc.paper_omni_camera()
+    return jaxloc.Rig(jaxloc.paper_overhead_camera(), omni, omni, omni, mounts=mounts)

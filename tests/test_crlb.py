@@ -15,20 +15,20 @@ import jaxlie
 import numpy as np
 import pytest
 from jaxloc._core.results import RESULTS
+from jaxloc._cycle.estimate import CycleEstimate
+from jaxloc._cycle.layout import first_sighting
 from jaxloc._cycle.observations import CyclePoses
-from jaxloc._refine.covariance import (
-    _covariance_at,
-    _covariance_inputs,
-    _crlb_inputs,
+from jaxloc._model.covariance import (
+    covariance_at,
+    crlb_inputs,
     crlb_rmse,
     cycle_covariance,
     cycle_crlb,
 )
+from jaxloc._model.measurements import predict
 from jaxloc._refine.cycle import refine_cycle
-from jaxloc._refine.model import _first_occurrence, _predict
 from jaxloc._sim.scenario import Scenario
 from jaxloc._sim.simulate import noiseless, simulate_cycle
-from jaxloc._solvers.strategies import CycleEstimate
 from scipy.stats import chi2
 
 
@@ -47,7 +47,7 @@ def _perturb(T: jaxlie.SE3, key, scale) -> jaxlie.SE3:
 
 def _tangent_errors(est: CyclePoses, truth: CyclePoses, strategy: str):
     """Stacked `log(T_hat^-1 T_true)` of placements 1.. and the overhead camera, `(n,)`."""
-    ks, rs = _first_occurrence(strategy)
+    ks, rs = first_sighting(strategy)
     a = est.T_world_body.wxyz_xyz[ks[1:], rs[1:]]
     b = truth.T_world_body.wxyz_xyz[ks[1:], rs[1:]]
     e = jax.vmap(lambda x, y: jaxlie.manifold.rminus(jaxlie.SE3(x), jaxlie.SE3(y)))(a, b)
@@ -61,31 +61,26 @@ def _pipeline(sim_scenario, scenario, keys, perturb, fail_every, tol, solver):
         k_sim, k_pert = jr.split(key)
         truth, obs, visible = simulate_cycle(sim_scenario, k_sim)
         failed = (i % fail_every) == 0
-        start = CycleEstimate(
+        start = CycleEstimate.from_poses(
             CyclePoses(
                 _perturb(truth.poses.T_world_body, k_pert, perturb),
                 _perturb(truth.poses.T_world_overhead, jr.fold_in(k_pert, 1), perturb),
             ),
-            jnp.ones(obs.num_steps),
-            RESULTS.where(failed, RESULTS.degenerate_configuration, RESULTS.successful),
-            {},
+            result=RESULTS.where(failed, RESULTS.degenerate_configuration, RESULTS.successful),
         )
-        ref = refine_cycle(obs, scenario, start, solver=solver, rtol=tol, atol=tol, throw=False)
-        # cycle_crlb and cycle_covariance in one trace (stacked inputs, half the compile).
-        inputs = jax.tree.map(
-            lambda a, b: jnp.stack([a, b]),
-            _crlb_inputs(scenario, truth, obs.strategy),
-            _covariance_inputs(obs, scenario, ref),
-        )
-        both = jax.vmap(_covariance_at, in_axes=(0, 0, 0, None, None))(
-            *inputs, scenario, obs.strategy
-        )
-        crlb, cov = (jax.tree.map(lambda x, i=i: x[i], both) for i in range(2))
-        ks, rs = _first_occurrence(obs.strategy)
-        mutual, overhead, lengths = _predict(
+        rig = scenario.rig
+        ref = refine_cycle(obs, rig, start, solver=solver, rtol=tol, atol=tol, throw=False)
+        # The covariance at the estimate is the refinement's own (its observability gate).
+        crlb = covariance_at(
+            *crlb_inputs(rig, truth.poses, scenario.odometry_sigma_rel, obs.strategy),
+            rig, obs.strategy,
+        )  # fmt: skip
+        cov = ref.covariance
+        ks, rs = first_sighting(obs.strategy)
+        mutual, overhead, lengths = predict(
             truth.poses.T_world_body.wxyz_xyz[ks, rs],
             truth.poses.T_world_overhead.wxyz_xyz,
-            scenario,
+            rig,
             obs.strategy,
         )
         model_gap = jnp.maximum(
@@ -93,8 +88,8 @@ def _pipeline(sim_scenario, scenario, keys, perturb, fail_every, tol, solver):
             jnp.nanmax(jnp.abs(overhead - obs.overhead_pixels)),
         )
         return {
-            "chi2": ref.stats["chi2"],
-            "dof": ref.stats["dof"],
+            "chi2": ref.checks.chi2,
+            "dof": ref.checks.dof,
             "visible": visible,
             "result": ref.result._value,
             "body": ref.poses.T_world_body.wxyz_xyz,
@@ -127,9 +122,12 @@ def test_public_wrappers_match_the_stacked_computation(getkey):
     structure by tracing only (no extra compilation)."""
     sc = Scenario.paper("sequential")
     truth, obs, _ = jax.eval_shape(simulate_cycle, sc, getkey())
-    crlb = jax.eval_shape(cycle_crlb, sc, truth)
-    est = CycleEstimate(truth.poses, jnp.ones(4), RESULTS.successful, {})
-    cov = jax.eval_shape(cycle_covariance, obs, sc, est)
+    crlb = jax.eval_shape(
+        lambda t: cycle_crlb(sc.rig, t.poses, odometry_sigma_rel=sc.odometry_sigma_rel), truth
+    )
+    cov = jax.eval_shape(
+        lambda o, t: cycle_covariance(o, sc.rig, CycleEstimate.from_poses(t.poses)), obs, truth
+    )
     for c in (crlb, cov):
         assert c.tangent.shape == (36, 36)
         assert c.position.shape == c.rotation.shape == (4, 3, 3)
@@ -225,19 +223,16 @@ def test_monte_carlo_vs_crlb_2000_trials(strategy):
 def _fixed_cycle():
     sc = Scenario.paper("sequential")
     truth, obs, _ = simulate_cycle(sc, jr.key(11))
-    start = CycleEstimate(
+    start = CycleEstimate.from_poses(
         CyclePoses(
             _perturb(truth.poses.T_world_body, jr.key(12), 0.01),
             _perturb(truth.poses.T_world_overhead, jr.key(13), 0.01),
-        ),
-        jnp.ones(obs.num_steps),
-        RESULTS.successful,
-        {},
+        )
     )
 
     def refined(pixels, solver):
         o = eqx.tree_at(lambda o: o.overhead_pixels, obs, pixels)
-        out = refine_cycle(o, sc, start, solver=solver, rtol=1e-9, atol=1e-9, throw=False)
+        out = refine_cycle(o, sc.rig, start, solver=solver, rtol=1e-9, atol=1e-9, throw=False)
         return out.poses.T_world_overhead.translation(), out.result._value
 
     return obs.overhead_pixels, refined
@@ -278,8 +273,8 @@ def test_vmapped_gradient_of_refinement_agrees_between_solvers():
     def loss(xy, key, solver):
         s = eqx.tree_at(lambda s: s.overhead_xy, sc, xy)
         truth, obs, _ = simulate_cycle(s, key)
-        start = CycleEstimate(truth.poses, jnp.ones(obs.num_steps), RESULTS.successful, {})
-        out = refine_cycle(obs, s, start, solver=solver, throw=False)
+        start = CycleEstimate.from_poses(truth.poses)
+        out = refine_cycle(obs, s.rig, start, solver=solver, throw=False)
         return jnp.sum(out.poses.T_world_overhead.translation())
 
     grads = [

@@ -7,6 +7,7 @@ import os
 import shutil
 
 import cv2
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
@@ -217,10 +218,13 @@ def test_ambiguous_refinement_reports_the_better_pose_with_a_note(cycle, monkeyp
     closed-form poses flagged `ambiguous` (real ambiguous cycles: tests/test_multistart)."""
     import jaxloc._vision.localize as frontend
 
-    def ambiguous_refine(observations, scenario, estimate, **kwargs):
-        stats = dict(estimate.stats, chi2=jnp.asarray(11.5), runner_up_chi2=jnp.asarray(13.0))
-        return jaxloc.CycleEstimate(
-            estimate.poses, estimate.scales, jaxloc.RESULTS.ambiguous, stats
+    def ambiguous_refine(observations, rig, estimate, **kwargs):
+        stats = dict(estimate.stats, runner_up_chi2=jnp.asarray(13.0))
+        checks = eqx.tree_at(lambda c: c.chi2, estimate.checks, jnp.asarray(11.5))
+        return eqx.tree_at(
+            lambda e: (e.result, e.stats, e.checks),
+            estimate,
+            (jaxloc.RESULTS.ambiguous, stats, checks),
         )
 
     monkeypatch.setattr(frontend, "refine_cycle", ambiguous_refine)

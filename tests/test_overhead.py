@@ -7,9 +7,11 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
+from jaxloc._core.batching import map_problems
 from jaxloc._core.results import RESULTS, status_code
-from jaxloc._solvers.dlt import paper_linear_pose, PoseSolution
-from jaxloc._solvers.overhead import map_problems, solve_overhead_pose
+from jaxloc._solvers.dlt import paper_linear_pose
+from jaxloc._solvers.overhead import solve_overhead_pose
+from jaxloc._solvers.pose_problem import PoseSolution
 
 
 F_PX = 656.0  # focal length of the paper-like overhead camera, pixels

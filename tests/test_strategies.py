@@ -5,9 +5,18 @@ import jaxlie
 import jaxloc
 import numpy as np
 import pytest
-from helpers import cycle_poses, exact_arrays, exact_observations, random_cycle_truth
+from helpers import (
+    all_seeing_rig,
+    cycle_poses,
+    exact_arrays,
+    exact_observations,
+    random_cycle_truth,
+)
 from jaxloc._cycle.observations import CycleObservations
-from jaxloc._solvers.strategies import localize_cycle, localize_cycle_methods
+from jaxloc._solvers.localize import localize_cycle, localize_cycle_methods
+
+
+RIG = all_seeing_rig()
 
 
 BATCH = 64  # one batch size for every batched test: one compilation per strategy
@@ -15,12 +24,12 @@ BATCH = 64  # one batch size for every batched test: one compilation per strateg
 
 @jax.jit
 def _solve_batch(obs):
-    return jax.vmap(lambda o: localize_cycle_methods(o, ("robust", "paper")))(obs)
+    return jax.vmap(lambda o: localize_cycle_methods(o, RIG, ("robust", "paper")))(obs)
 
 
 @jax.jit
 def _solve_one(obs):
-    return localize_cycle(obs, throw=False)
+    return localize_cycle(obs, RIG, throw=False)
 
 
 def _min_angle(ts):
@@ -88,7 +97,7 @@ def test_jit_equals_eager_and_vmap_equals_loop(strategy):
         one = jax.tree.map(lambda x: x[i], noisy)
         jitted = _solve_one(one)
         if i == 0:  # eager (op by op) is slow: check it once
-            eager = localize_cycle(one, throw=False)
+            eager = localize_cycle(one, RIG, throw=False)
         else:
             eager = jitted
         for got in (jitted, jax.tree.map(lambda x: x[i], batched)):
@@ -111,7 +120,7 @@ def test_grad_wrt_true_positions_matches_finite_differences(strategy):
     def overhead_height(ts):
         mutual, overhead, odometry = exact_arrays(Rs, ts, R_c, t_c, strategy, xp=jnp)
         obs = CycleObservations(mutual, overhead, odometry, 0.01 * odometry, strategy)
-        est = localize_cycle(obs, throw=False)
+        est = localize_cycle(obs, RIG, throw=False)
         c = est.poses.T_world_overhead.translation()
         return c[2] + 0.3 * c[0] + jnp.sum(est.poses.T_world_body.translation()[-1] ** 2)
 
@@ -136,22 +145,22 @@ def test_degenerate_inputs_give_status_not_nan():
     line[1, 0] = line[1, 2] = [-1.0, 0, 0]
     line[1, 2] = [1.0, 0, 0]
     bad = eqx.tree_at(lambda o: o.mutual, obs, obs.mutual.at[2].set(jnp.asarray(line)))
-    est = localize_cycle(bad, throw=False)
+    est = localize_cycle(bad, RIG, throw=False)
     assert est.result == jaxloc.RESULTS.degenerate_configuration
     assert np.all(np.isfinite(np.asarray(est.poses.T_world_body.wxyz_xyz)))
     with pytest.raises(Exception, match="collinear"):
-        localize_cycle(bad, throw=True)
+        localize_cycle(bad, RIG, throw=True)
 
     nan = eqx.tree_at(lambda o: o.overhead, obs, obs.overhead.at[1, 1, 0].set(jnp.nan))
-    est = localize_cycle(nan, throw=False)
+    est = localize_cycle(nan, RIG, throw=False)
     assert est.result != jaxloc.RESULTS.successful
     assert np.all(np.isfinite(np.asarray(est.poses.T_world_overhead.wxyz_xyz)))
 
     nan_odo = eqx.tree_at(lambda o: o.odometry, obs, obs.odometry.at[0].set(jnp.nan))
-    assert localize_cycle(nan_odo, throw=False).result == jaxloc.RESULTS.nonfinite_observation
+    assert localize_cycle(nan_odo, RIG, throw=False).result == jaxloc.RESULTS.nonfinite_observation
 
     zero_odo = eqx.tree_at(lambda o: o.odometry, obs, jnp.zeros(3))
-    assert localize_cycle(zero_odo, throw=False).result == jaxloc.RESULTS.scale_unobservable
+    assert localize_cycle(zero_odo, RIG, throw=False).result == jaxloc.RESULTS.scale_unobservable
 
 
 @pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
@@ -180,7 +189,7 @@ def test_unknown_method_rejected():
     rng = np.random.default_rng(7)
     obs = exact_observations(*random_cycle_truth(rng, "sequential"), "sequential")
     with pytest.raises(ValueError, match="method"):
-        localize_cycle(obs, method="magic")
+        localize_cycle(obs, RIG, method="magic")
 
 
 def test_cycle_poses_helpers():
@@ -198,14 +207,13 @@ def test_cycle_poses_helpers():
 def test_mutual_steps_equal_one_solve_per_step():
     # One vmap over the steps, each with its robots reordered so that the reference comes
     # first, gives the same poses as solving each step with its own reference robot.
-    from jaxloc._solvers.mutual import mutual_localization
-    from jaxloc._solvers.strategies import _mutual_steps
+    from jaxloc._solvers.mutual import mutual_localization, mutual_steps
 
     rng = np.random.default_rng(5)
     bearings = rng.standard_normal((4, 3, 3, 3))
     bearings /= np.linalg.norm(bearings, axis=-1, keepdims=True)
     refs = (0, 2, 0, 1)
-    sols = _mutual_steps(jnp.asarray(bearings), refs)
+    sols = mutual_steps(jnp.asarray(bearings), refs)
     for k, ref in enumerate(refs):
         want = mutual_localization(jnp.asarray(bearings[k]), ref, throw=False)
         np.testing.assert_allclose(

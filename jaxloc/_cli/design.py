@@ -159,11 +159,11 @@ def _cmd_design(args) -> int:
         f"{args.moves} moves, free: {free if free == 'all' else ','.join(free)}"
     )
     print(
-        f"Assumptions: pixel noise sigma = {float(scenario.pixel_sigma):g} px "
-        f"({scenario.noise_model} model); odometry sigma = "
+        f"Assumptions: pixel noise sigma = {scenario.rig.sigma_text()} px "
+        f"({scenario.rig.noise_model} model); odometry sigma = "
         f"{100 * float(scenario.odometry_sigma_rel):g}% of the distance; {args.starts} starts "
         f"x {args.iterations} BFGS iterations, {args.draws} common draws, seed {args.seed}; "
-        f"image margin {args.image_margin:g} px; float64."
+        f"image margin {args.image_margin:g} px; {scenario.base.dtype}."
     )
     t0 = time.perf_counter()
     res = design_formation(
@@ -292,7 +292,7 @@ def _margins(formation, scenario, limits, seed: int, strict: bool):
 
 
 def format_verification(table: dict) -> str:
-    from .._study.trial import CAMERAS
+    from .._cycle.layout import CAMERAS
 
     lines = [
         f"trials ok: before {table['n_ok'][0]}, after {table['n_ok'][1]} "

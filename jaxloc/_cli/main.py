@@ -41,7 +41,7 @@ def _fmt(x: float, width: int = 7) -> str:
 
 def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
     """The paper's Table I layout for one strategy, with jaxloc's distributions beside it."""
-    from .._study.trial import CAMERAS
+    from .._cycle.layout import CAMERAS
 
     lines = []
     n = summary["n_trials"]
@@ -130,11 +130,11 @@ def _assumptions(scenario, trials: int, seed: int) -> str:
     noise = {
         "paper": "radius ~ N(0, sigma), uniform direction (the paper's model)",
         "gaussian": "isotropic Gaussian, sigma per axis",
-    }[scenario.noise_model]
+    }[scenario.rig.noise_model]
     return (
-        f"Assumptions: pixel noise sigma = {float(scenario.pixel_sigma):g} px, {noise}; "
+        f"Assumptions: pixel noise sigma = {scenario.rig.sigma_text()} px, {noise}; "
         f"odometry sigma = {100 * float(scenario.odometry_sigma_rel):g}% of the distance; "
-        f"{trials} trials per strategy; seed {seed}; float64.\n"
+        f"{trials} trials per strategy; seed {seed}; {scenario.base.dtype}.\n"
         "Errors are of the end-of-cycle poses in the cycle's world frame (C1's body frame at "
         "the start). 'paper run' is the paper's single simulated run (Table I)."
     )
@@ -278,7 +278,7 @@ def _plot(studies: dict, methods, path: str):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .._study.trial import CAMERAS
+    from .._cycle.layout import CAMERAS
 
     fig, axes = plt.subplots(len(studies), 4, figsize=(16, 3.6 * len(studies)), squeeze=False)
     for row, (strategy, study) in enumerate(studies.items()):
@@ -404,7 +404,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--trials must be positive; got {args.trials}")
     if getattr(args, "chunk_size", None) is not None and args.chunk_size <= 0:
         parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
-    _enable_compile_cache()
     try:
         return args.func(args)
     except (ValueError, FileNotFoundError) as e:
@@ -413,9 +412,14 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def console_main() -> int:
-    """The `jaxloc` command: `main` with every core exposed as a JAX CPU device. A Python
-    program calling `main` keeps its own JAX configuration."""
+    """The `jaxloc` command: `main` in float64 (JAX's 64-bit mode), with every core
+    exposed as a JAX CPU device and the persistent compilation cache on. A Python program
+    calling `main` keeps its own JAX configuration (and its own dtype)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
     _use_every_core()
+    _enable_compile_cache()
     return main()
 
 

@@ -1,217 +1,194 @@
-"""Small dense least-squares linear algebra without LAPACK (DESIGN §8).
+"""The one least-squares kernel: a batched Levenberg--Marquardt on a manifold, its
+Gauss--Newton special case, and the implicit-function derivative of its minimum.
 
-A column-by-column Cholesky and its triangular solves in `fori_loop`s, and the lineax
-solver that takes optimistix's Gauss--Newton / Levenberg--Marquardt steps through them.
-Batched LAPACK calls on tiny matrices run one problem at a time on one core; these loops
-vectorize under `vmap`.
+Every nonlinear least-squares problem jaxloc solves goes through
+[`levenberg_marquardt`][]: the joint refinement of a cycle (~40 unknowns), the
+refinement of one camera pose and the robust overhead solver's polish (6 unknowns), the
+concurrent strategy's small scale fits. The caller supplies the model (residuals and
+their Jacobian with respect to a local perturbation, by the chain rule: cheaper than
+differentiating the model) and the retraction that applies a step; the loop is the same.
+Its derivatives are never those of the unrolled loop: [`implicit_step`][] gives the
+minimum's derivative by the implicit function theorem. The lineax solver
+[`NormalCholesky`][] lets `optx.least_squares` take its steps through the same
+LAPACK-free normal equations (the `"optx-lm"` / `"optx-gn"` solvers).
 """
 
 import functools as ft
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
-import jaxlie
 import lineax as lx
 import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float, Int, PyTree
+
+from .linalg import cholesky, cholesky_solve, gram, spd_inverse, unrolled_cholesky_solve
 
 
-SOLVERS = ("lm", "gn")
+#: Largest number of unknowns solved by the unrolled Cholesky; larger systems use the
+#: `fori_loop` one (an unrolled 40x40 factorization is ~10^4 traced operations).
+UNROLLED_MAX = 8
+#: Damping of the first step and its clip range.
+_LAM_MIN, _LAM_MAX = 1e-9, 1e12
 
 
-def _cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
-    """Lower Cholesky factor, column by column in a `fori_loop`: no LAPACK call (DESIGN §8
-    reports LAPACK calls hanging when two threads run them, and per-call overhead
-    dominates for small matrices). NaN if `A` is not positive definite."""
-    n = A.shape[0]
-    rows = jnp.arange(n)
-
-    def body(j, L):
-        v = A[:, j] - L @ L[j, :]  # columns >= j of L are still zero
-        d = jnp.sqrt(v[j])
-        return L.at[:, j].set(jnp.where(rows >= j, v / d, 0.0))
-
-    return jax.lax.fori_loop(0, n, body, jnp.zeros_like(A))
-
-
-def _cholesky_solve(L: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
-    """Solve `L L^T x = b` by forward and back substitution (no LAPACK)."""
-    n = L.shape[0]
-
-    def fwd(i, y):
-        return y.at[i].set((b[i] - L[i] @ y) / L[i, i])  # entries >= i of y still zero
-
-    y = jax.lax.fori_loop(0, n, fwd, jnp.zeros_like(b))
-
-    def bwd(k, x):
-        i = n - 1 - k
-        return x.at[i].set((y[i] - L[:, i] @ x) / L[i, i])  # entries <= i of x still zero
-
-    return jax.lax.fori_loop(0, n, bwd, jnp.zeros_like(b))
+def solve_spd(
+    H: Float[Array, "n n"], g: Float[Array, " n"]
+) -> tuple[Float[Array, " n"], Bool[Array, ""]]:
+    """Solve `H x = g` for SPD `H`, LAPACK-free: unrolled Cholesky for a few unknowns, a
+    `fori_loop` one beyond `UNROLLED_MAX`. Returns `(x, ok)`; `x` is 0 where not `ok`."""
+    if H.shape[0] <= UNROLLED_MAX:
+        x, ok = unrolled_cholesky_solve(H, g)
+    else:
+        x = cholesky_solve(cholesky(H), g)
+        ok = jnp.array(True)
+    ok = ok & jnp.all(jnp.isfinite(x))
+    return jnp.where(ok, x, 0.0), ok
 
 
-class _NormalCholesky(lx.AbstractLinearSolver):
-    """Least-squares solve `min |A x - b|` through the normal equations `A^T A x = A^T b`
-    with a `fori_loop` Cholesky: no LAPACK in the refinement loop (lineax's default QR
-    calls LAPACK once per problem under `vmap`). For the small, well-scaled systems of a
-    pose refinement (6 or ~40 unknowns; Levenberg--Marquardt passes the damped augmented
-    Jacobian) squaring the condition number costs nothing in float64."""
+class LMResult(NamedTuple):
+    """Outcome of [`levenberg_marquardt`][]: the last accepted iterate `x`, the number of
+    steps decided (`num_steps`, at most `max_steps`), whether it `converged`, and the
+    residuals `r` and Jacobian `J` there."""
 
-    def init(self, operator, options):
-        del options
-        A = operator.as_matrix()
-        return A, _cholesky(A.T @ A)
-
-    def compute(self, state, vector, options):
-        del options
-        A, L = state
-        flat, unflatten = jax.flatten_util.ravel_pytree(vector)
-        x = _cholesky_solve(L, A.T @ flat)
-        ok = jnp.all(jnp.isfinite(x))
-        x = jnp.where(ok, x, 0.0)
-        result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.singular)
-        _, unflatten_in = jax.flatten_util.ravel_pytree(
-            jnp.zeros(A.shape[1], A.dtype)
-        )
-        del unflatten
-        return unflatten_in(x), result, {}
-
-    def transpose(self, state, options):
-        raise NotImplementedError("`_NormalCholesky` is only used inside the solver loop.")
-
-    def conj(self, state, options):
-        return state, options
-
-    def assume_full_rank(self):
-        return True
+    x: PyTree
+    num_steps: Int[Array, ""]
+    converged: Bool[Array, ""]
+    r: Float[Array, " m"]
+    J: Float[Array, "m n"]
 
 
-def _make_solver(solver: str, rtol: float, atol: float):
-    if solver == "lm":
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=_NormalCholesky())
-    if solver == "gn":
-        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=_NormalCholesky())
-    raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')
+class _State(NamedTuple):
+    k: Int[Array, ""]  # iterations run; iteration k >= 1 decided on step k
+    x: PyTree  # the current iterate ...
+    r: Float[Array, " m"]  # ... with its residuals and Jacobian
+    J: Float[Array, "m n"]
+    lam: Float[Array, ""]  # the damping the proposed step was solved with
+    nu: Float[Array, ""]
+    done: Bool[Array, ""]
+    converged: Bool[Array, ""]
+    x_try: PyTree  # the proposed step ...
+    finite: Bool[Array, ""]  # ... finite, small enough to stop, and its predicted decrease
+    small: Bool[Array, ""]
+    predicted: Float[Array, ""]
 
 
-# --------------------------------------------------------------------------------------
-# Six unknowns (one SE(3) pose): everything unrolled and element-wise, so that under `vmap`
-# XLA fuses a whole iteration into a few loops over the batch (no `dot`, no LAPACK).
+def levenberg_marquardt(
+    model: Callable[[PyTree], tuple[Array, Array]],
+    retract: Callable[[PyTree, Array], PyTree],
+    scale: Callable[[PyTree], Array],
+    x0: PyTree,
+    *,
+    num_residuals: int,
+    num_unknowns: int,
+    max_steps: int | Array,
+    rtol: float,
+    atol: float,
+    active: Bool[Array, ""] | bool = True,
+    damped: bool = True,
+    lam0: float = 1e-2,
+    decrease_tol: float | None = None,
+    final_gauss_newton: bool = False,
+) -> LMResult:
+    r"""Levenberg--Marquardt re-linearized at the current iterate every step.
 
+    **Arguments:**
 
-def _cholesky_solve6(H: Float[Array, "6 6"], g: Float[Array, "6"]):
-    """Solve `H x = g` for SPD `H` with an unrolled Cholesky (no LAPACK). Returns (x, ok)."""
-    n = 6
-    L = [[None] * n for _ in range(n)]
-    ok = jnp.array(True)
-    tiny = jnp.finfo(H.dtype).tiny
-    for j in range(n):
-        s = H[j, j] - sum((L[j][k] * L[j][k] for k in range(j)), start=0.0)
-        ok = ok & (s > tiny)
-        d = jnp.sqrt(jnp.where(s > tiny, s, 1.0))
-        L[j][j] = d
-        for i in range(j + 1, n):
-            L[i][j] = (H[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=0.0)) / d
-    y = [None] * n
-    for i in range(n):
-        y[i] = (g[i] - sum((L[i][k] * y[k] for k in range(i)), start=0.0)) / L[i][i]
-    x = [None] * n
-    for i in reversed(range(n)):
-        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), start=0.0)) / L[i][i]
-    return jnp.stack(x), ok
+    - `model(x) -> (r, J)`: residuals `(num_residuals,)` at `x` and their Jacobian
+      `(num_residuals, num_unknowns)` with respect to the local perturbation `delta` of
+      `retract(x, delta)` at `delta = 0`.
+    - `retract(x, delta) -> x'`: applies a step (e.g. `T exp(delta)` per pose).
+    - `scale(x)`: the size of `x` the relative tolerance refers to (e.g. the largest
+      position, m).
+    - `x0`: the start (any pytree of arrays).
+    - `max_steps`: steps decided at most (each one model evaluation).
+    - `rtol`, `atol`: converged when a step (accepted, or rejected at negligible damping:
+      the minimum within rounding) has `max |delta| <= atol + rtol * scale(x)`.
+    - `active`: an inactive problem (e.g. a failed start) takes no step, so under `vmap`
+      it does not prolong its batch's loop.
+    - `damped`: `False` gives Gauss--Newton: every finite step is taken and the damping
+      stays `lam0` (0 for plain Gauss--Newton; a tiny value regularizes directions no
+      residual touches).
+    - `lam0`: the first step's damping. Damping is isotropic, `H + lambda I`: on whitened
+      residuals `lambda` is a prior precision on the unknowns (Marquardt's `diag(J^T J)`
+      scaling over-damps every translation a precise odometry distance touches). It is
+      updated by Nielsen's rule: by the gain ratio (actual over predicted decrease) after
+      an accepted step, by doubling factors after rejected ones (fixed factors of 10
+      oscillate between acceptance and rejection along a curved, weakly observed valley).
+    - `decrease_tol`: also converged when a step's predicted cost decrease `-g . delta` is
+      below it (the residuals must be whitened: it is then in chi-square units, about the
+      squared step in standard deviations). Gauss--Newton converges only linearly along
+      weakly observed directions (a flat floor), where the step test alone takes
+      hundreds of iterations. `None`: the step test only.
+    - `final_gauss_newton`: after convergence, one more Gauss--Newton step from the
+      Jacobian at hand (no model evaluation) takes the remaining error to rounding.
 
-
-def _inverse6(H: Float[Array, "6 6"]):
-    """Inverse of an SPD 6x6 matrix by an unrolled Cholesky (no LAPACK); `(inv, ok)`."""
-    eye = jnp.eye(6, dtype=H.dtype)
-    cols, oks = jax.vmap(lambda e: _cholesky_solve6(H, e))(eye)
-    inv = cols.T
-    inv = 0.5 * (inv + inv.T)
-    ok = jnp.all(oks) & jnp.all(jnp.isfinite(inv))
-    return jnp.where(ok, inv, 0.0), ok
-
-
-def _normal_equations6(r: Float[Array, " m"], J: Float[Array, "m 6"]):
-    """`(J^T J, J^T r)` as element-wise products and sums (no `dot`)."""
-    H = jnp.sum(J[:, :, None] * J[:, None, :], axis=0)
-    g = jnp.sum(J * r[:, None], axis=0)
-    return H, g
-
-
-def _rplus(T: jaxlie.SE3, delta, dtype) -> jaxlie.SE3:
-    # jaxlie's exp returns float64 under x64 even for float32 input: cast back.
-    return jaxlie.SE3(jaxlie.manifold.rplus(T, delta).wxyz_xyz.astype(dtype))
-
-
-def _pose_lm(
-    model, T0: jaxlie.SE3, *, damped: bool, max_steps: int, rtol, atol, active, lam0=1e-3
-):
-    """Levenberg--Marquardt (or, `damped=False`, Gauss--Newton) on one SE(3) pose,
-    re-linearized at the current pose every step.
-
-    `model(T) -> (r, J)`: residuals `(m,)` and their Jacobian `(m, 6)` w.r.t. the right
-    perturbation `T exp(delta)` at `delta = 0` (chain rule, by the caller). One model
-    evaluation per iteration, the normal equations as element-wise sums, an unrolled
-    Cholesky. Isotropic damping `lambda I` (on a whitened problem `lambda` is a prior
-    precision on `(v, omega)`), from `lam0`, divided by 10 after an accepted step,
-    multiplied by 10 after a rejected one; Gauss--Newton takes every finite step.
-    Converged when a step (accepted, or rejected at negligible damping: the minimum within
-    rounding) is below `atol + rtol * |t|_inf` (m, rad); then one last Gauss--Newton step
-    from the Jacobian at hand (no model evaluation) takes the remaining error to rounding.
-    An inactive problem takes no step: under `vmap` it does not prolong its batch's loop.
-    Not meant to be differentiated (see `_implicit_pose_step`). Returns
-    `(T, num_steps, converged)`.
+    One model evaluation per iteration, at the top of the loop body, so the model and its
+    Jacobian are traced and compiled once: iteration 0 evaluates the start, iteration
+    `k >= 1` evaluates step `k` proposed by iteration `k - 1` and accepts or rejects it.
+    The normal equations are element-wise sums and a LAPACK-free Cholesky ([`solve_spd`][]).
+    Not meant to be differentiated: see [`implicit_step`][].
     """
-    dtype = T0.wxyz_xyz.dtype
-    r0, J0 = model(T0)
-    lam0 = jnp.array(lam0 if damped else 0.0, dtype)
-    init = (jnp.array(0, jnp.int32), T0.wxyz_xyz, r0, J0, lam0, ~active, jnp.array(False))
+    leaves = jax.tree.leaves(x0)
+    dtype = jnp.result_type(*leaves)
+    eye = jnp.eye(num_unknowns, dtype=dtype)
+    lam0 = jnp.array(lam0, dtype)
 
-    def cond(state):
-        k, *_, done, _ = state
-        return (k < max_steps) & ~done
+    def propose(x, r, J, lam):
+        H, g = gram(J), jnp.sum(J * r[:, None], axis=0)
+        delta, finite = solve_spd(H + lam * eye, -g)
+        small = jnp.max(jnp.abs(delta)) <= atol + rtol * scale(x)
+        if decrease_tol is not None:
+            small = small | (-jnp.sum(g * delta) <= decrease_tol)
+        predicted = -2.0 * jnp.sum(g * delta) - jnp.sum(delta * (H @ delta))
+        return retract(x, delta), finite, small, predicted
 
-    def body(state):
-        k, params, r, J, lam, _, _ = state
-        H, g = _normal_equations6(r, J)
-        delta, ok = _cholesky_solve6(H + lam * jnp.eye(6, dtype=dtype), -g)
-        finite = ok & jnp.all(jnp.isfinite(delta))
-        delta = jnp.where(finite, delta, 0.0)
-        T_new = _rplus(jaxlie.SE3(params), delta, dtype)
-        r_new, J_new = model(T_new)
-        cost, cost_new = jnp.sum(r * r), jnp.sum(r_new * r_new)
-        accept = finite & jnp.isfinite(cost_new)
+    false = jnp.array(False)
+    init = _State(
+        k=jnp.array(0, jnp.int32), x=x0, r=jnp.zeros(num_residuals, dtype),
+        J=jnp.zeros((num_residuals, num_unknowns), dtype), lam=lam0,
+        nu=jnp.array(2.0, dtype), done=~jnp.asarray(active), converged=false, x_try=x0,
+        finite=jnp.array(True), small=false, predicted=jnp.array(0.0, dtype),
+    )  # fmt: skip
+
+    def cond(s: _State):
+        return (s.k <= max_steps) & ~s.done
+
+    def body(s: _State):
+        r_new, J_new = model(s.x_try)
+        first = s.k == 0
+        cost, cost_new = jnp.sum(s.r * s.r), jnp.sum(r_new * r_new)
+        ok_new = s.finite & jnp.isfinite(cost_new)
+        accept = first | (ok_new & (cost_new <= cost) if damped else ok_new)
+        # A rejected step that is already negligible: the minimum within rounding.
+        done = ~first & (accept | (s.lam < 1e-3)) & s.finite & s.small
+        pick = ft.partial(jax.tree.map, lambda a, b: jnp.where(accept, a, b))
         if damped:
-            accept = accept & (cost_new <= cost)
-        small = jnp.max(jnp.abs(delta)) <= atol + rtol * jnp.max(jnp.abs(params[4:]))
-        done = (accept | (lam < 10.0 * lam0)) & finite & small
-        pick = lambda a, b: jnp.where(accept, a, b)  # noqa: E731
-        if damped:
-            lam = jnp.where(
-                accept, jnp.maximum(lam / 10.0, 1e-9), jnp.minimum(lam * 10.0, 1e12)
-            )
-        return (
-            k + 1, pick(T_new.wxyz_xyz, params), pick(r_new, r), pick(J_new, J), lam,
-            done, done,
-        )
+            gain = (cost - cost_new) / jnp.where(s.predicted > 0, s.predicted, 1.0)
+            shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            lam = jnp.clip(jnp.where(accept, s.lam * shrink, s.lam * s.nu), _LAM_MIN, _LAM_MAX)
+            lam = jnp.where(first, s.lam, lam).astype(dtype)
+            nu = jnp.where(first | accept, 2.0, 2.0 * s.nu).astype(dtype)
+        else:
+            lam, nu = s.lam, s.nu
+        x, r, J = pick(s.x_try, s.x), pick(r_new, s.r), pick(J_new, s.J)
+        x_try, finite, small, predicted = propose(x, r, J, lam)
+        return _State(s.k + 1, x, r, J, lam, nu, done, done, x_try, finite, small, predicted)
 
-    k, params, r, J, _, _, converged = jax.lax.while_loop(cond, body, init)
-    H, g = _normal_equations6(r, J)
-    delta, ok = _cholesky_solve6(H, -g)
-    ok = ok & converged & jnp.all(jnp.isfinite(delta))
-    T = jaxlie.SE3(params)
-    T_last = _rplus(T, jnp.where(ok, delta, 0.0), dtype)
-    return jaxlie.SE3(jnp.where(ok, T_last.wxyz_xyz, params)), k, converged
-
-
-def _zero_step(params):
-    # Derived from an input so that under `vmap` it is batched like its tangent.
-    return jnp.zeros(6, params.dtype) + 0.0 * params[0]
+    out = jax.lax.while_loop(cond, body, init)
+    x = out.x
+    if final_gauss_newton:
+        H, g = gram(out.J), jnp.sum(out.J * out.r[:, None], axis=0)
+        delta, ok = solve_spd(H, -g)
+        polished = retract(x, delta)
+        x = jax.tree.map(lambda a, b: jnp.where(ok & out.converged, a, b), polished, x)
+    return LMResult(x, jnp.maximum(out.k - 1, 0), out.converged, out.r, out.J)
 
 
-def _jvp_nonzero(f, primals, tangents):
+def jvp_nonzero(f, primals, tangents):
     """`jax.jvp(f, primals, tangents)[1]` over the pytree `primals`, differentiating only
     the leaves whose tangent is not a `SymbolicZero`; `None` if every tangent is zero."""
     leaves, tree = jax.tree.flatten(primals)
@@ -229,31 +206,82 @@ def _jvp_nonzero(f, primals, tangents):
     return jax.jvp(of_live, [leaves[i] for i in live], [dots[i] for i in live])[1]
 
 
-@ft.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
-def _implicit_pose_step(residuals, static, params, args):
-    """Zero tangent step at a converged pose `params` (`wxyz_xyz`) whose derivative is that
-    of the minimizer of `|residuals(T exp(delta), args, static)|^2` w.r.t. `args`
-    (implicit function theorem on the gradient of the cost; full Hessian). The pose
-    `T exp(step)` is the solution with correct derivatives; it does not depend on the
-    starting pose. `residuals` and `static` are hashable and not differentiated."""
-    return _zero_step(params)
+def _zero_step(num_unknowns: int, x) -> Array:
+    # Derived from an input so that under `vmap` it is batched like its tangent.
+    leaf = jax.tree.leaves(x)[0]
+    return jnp.zeros(num_unknowns, leaf.dtype) + 0.0 * leaf.reshape(-1)[0]
 
 
-@ft.partial(_implicit_pose_step.defjvp, symbolic_zeros=True)
-def _implicit_pose_step_jvp(residuals, static, primals, tangents):
-    params, args = primals
+@ft.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def implicit_step(residuals: Callable, num_unknowns: int, static: Any, x: PyTree, args: PyTree):
+    """Zero tangent step at a converged minimum `x`, whose derivative is that of the
+    minimizer of `|residuals(x, delta, args, static)|^2` over `delta` with respect to
+    `args` (the implicit function theorem on the gradient of the cost; full Hessian).
+
+    `retract(x, implicit_step(...))` is the solution with correct derivatives; it does
+    not depend on the start. `residuals` and `static` are hashable and not
+    differentiated; `residuals(x, delta, args, static)` gives the residuals at the
+    perturbed iterate."""
+    return _zero_step(num_unknowns, x)
+
+
+@ft.partial(implicit_step.defjvp, symbolic_zeros=True)
+def _implicit_step_jvp(residuals, num_unknowns, static, primals, tangents):
+    x, args = primals
     _, args_dot = tangents
-    zero = _zero_step(params)
-    T = jaxlie.SE3(params)
+    zero = _zero_step(num_unknowns, x)
 
     def gradient(delta, args):
         def cost(d):
-            r = residuals(jaxlie.manifold.rplus(T, d), args, static)
+            r = residuals(x, d, args, static)
             return 0.5 * jnp.sum(r * r)
 
         return jax.grad(cost)(delta)
 
     H = jax.jacfwd(gradient)(zero, args)
-    H_inv, _ = _inverse6(0.5 * (H + H.T))
-    g_dot = _jvp_nonzero(lambda a: gradient(zero, a), args, args_dot)
+    H_inv, _ = spd_inverse(0.5 * (H + H.T))
+    g_dot = jvp_nonzero(lambda a: gradient(zero, a), args, args_dot)
     return zero, jnp.zeros_like(zero) if g_dot is None else -H_inv @ g_dot
+
+
+class NormalCholesky(lx.AbstractLinearSolver):
+    """Least-squares solve `min |A x - b|` through the normal equations `A^T A x = A^T b`
+    with a `fori_loop` Cholesky: no LAPACK in `optx.least_squares`'s loop (lineax's
+    default QR calls LAPACK once per problem under `vmap`). For the small, well-scaled
+    systems of a pose refinement (6 or ~40 unknowns; Levenberg--Marquardt passes the
+    damped augmented Jacobian) squaring the condition number costs nothing in float64."""
+
+    def init(self, operator, options):
+        del options
+        A = operator.as_matrix()
+        return A, cholesky(A.T @ A)
+
+    def compute(self, state, vector, options):
+        del options
+        A, L = state
+        flat, _ = jax.flatten_util.ravel_pytree(vector)
+        x = cholesky_solve(L, A.T @ flat)
+        ok = jnp.all(jnp.isfinite(x))
+        x = jnp.where(ok, x, 0.0)
+        result = lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.singular)
+        _, unflatten_in = jax.flatten_util.ravel_pytree(jnp.zeros(A.shape[1], A.dtype))
+        return unflatten_in(x), result, {}
+
+    def transpose(self, state, options):
+        raise NotImplementedError("`NormalCholesky` is only used inside the solver loop.")
+
+    def conj(self, state, options):
+        return state, options
+
+    def assume_full_rank(self):
+        return True
+
+
+def optx_solver(solver: str, rtol: float, atol: float):
+    """optimistix's `"lm"` (Levenberg--Marquardt) or `"gn"` (Gauss--Newton) with the
+    [`NormalCholesky`][] linear solver."""
+    if solver == "lm":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=NormalCholesky())
+    if solver == "gn":
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=NormalCholesky())
+    raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')

@@ -1,17 +1,190 @@
-"""Small dense linear algebra written in plain JAX operations, without LAPACK.
+"""Small dense linear algebra written in plain JAX operations, without LAPACK: the one
+home of jaxloc's closed-form 3x3 algebra, Cholesky factorizations and solves, SPD
+inverses and the Jacobi SVD.
 
 Everything a Monte Carlo trial computes must be free of `jnp.linalg` calls: XLA on CPU
 calls LAPACK once per small matrix (slow when batched), and jaxlib 0.10's batched LAPACK
 kernels split a batch over the same thread pool that runs the devices' programs, so a
 study sharded over two host devices deadlocks at 0% CPU (DESIGN §8). These functions are
-branch-free, work under `jit`, `vmap` and `grad`, and in float32 and float64.
+branch-free, work under `jit`, `vmap` and `grad`, and in float32 and float64. Singular
+or indefinite input never raises: it gives a finite value and a flag (or NaN where
+documented).
 """
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float, Scalar
 
 from .numerics import safe_normalize
+
+
+# --------------------------------------------------------------------------------------
+# 3x3 closed forms.
+
+
+def det3(M: Float[Array, "3 3"]) -> Scalar:
+    """Determinant of a 3x3 matrix by cofactor expansion along the first row."""
+    return (
+        M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1])
+        - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+        + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0])
+    )
+
+
+def adjugate3(A: Float[Array, "3 3"]) -> tuple[Float[Array, "3 3"], Scalar]:
+    """Adjugate and determinant of a 3x3 matrix (`A^-1 = adj / det`, `A adj = det I`)."""
+    adj = jnp.stack([jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])], axis=1)
+    return adj, jnp.dot(A[0], adj[:, 0])
+
+
+def solve3(A: Float[Array, "3 3"], b: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Solve a 3x3 system by the adjugate; 0 where `A` is singular."""
+    adj, det = adjugate3(A)
+    ok = jnp.abs(det) > jnp.finfo(A.dtype).tiny
+    return jnp.where(ok, adj @ b / jnp.where(ok, det, 1.0), 0.0)
+
+
+def logdet3(P: Float[Array, "3 3"], floor: float = -1e3) -> Scalar:
+    """`log det P` of a positive definite 3x3 matrix; `floor` where `det P <= 0`."""
+    det = det3(P)
+    ok = det > 0
+    return jnp.where(ok, jnp.log(jnp.where(ok, det, 1.0)), floor)
+
+
+def psd_cholesky3(P: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+    """Lower Cholesky factor of a 3x3 positive semi-definite matrix, element-wise; a
+    zero pivot (e.g. a fixed reference's zero covariance) gives a zero column."""
+
+    def root(x):
+        ok = x > 0
+        return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+    def div(a, b):
+        ok = b > 0
+        return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+    l00 = root(P[0, 0])
+    l10, l20 = div(P[1, 0], l00), div(P[2, 0], l00)
+    l11 = root(P[1, 1] - l10 * l10)
+    l21 = div(P[2, 1] - l20 * l10, l11)
+    l22 = root(P[2, 2] - l20 * l20 - l21 * l21)
+    zero = jnp.zeros_like(l00)
+    return jnp.stack(
+        [jnp.stack([l00, zero, zero]), jnp.stack([l10, l11, zero]), jnp.stack([l20, l21, l22])]
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Cholesky: a loop over columns for any size, and an unrolled one for a few unknowns.
+
+
+def cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """Lower Cholesky factor, column by column in a `fori_loop` (traced once whatever
+    `n`). NaN if `A` is not positive definite."""
+    n = A.shape[0]
+    rows = jnp.arange(n)
+
+    def body(j, L):
+        v = A[:, j] - L @ L[j, :]  # columns >= j of L are still zero
+        d = jnp.sqrt(v[j])
+        return L.at[:, j].set(jnp.where(rows >= j, v / d, 0.0))
+
+    return jax.lax.fori_loop(0, n, body, jnp.zeros_like(A))
+
+
+def cholesky_solve(L: Float[Array, "n n"], b: Float[Array, " n"]) -> Float[Array, " n"]:
+    """Solve `L L^T x = b` by forward and back substitution (`fori_loop`s)."""
+    n = L.shape[0]
+
+    def fwd(i, y):
+        return y.at[i].set((b[i] - L[i] @ y) / L[i, i])  # entries >= i of y still zero
+
+    y = jax.lax.fori_loop(0, n, fwd, jnp.zeros_like(b))
+
+    def bwd(k, x):
+        i = n - 1 - k
+        return x.at[i].set((y[i] - L[:, i] @ x) / L[i, i])  # entries <= i of x still zero
+
+    return jax.lax.fori_loop(0, n, bwd, jnp.zeros_like(b))
+
+
+def lower_inverse(L: Float[Array, "n n"]) -> Float[Array, "n n"]:
+    """`L^-1` of a lower-triangular `L` by forward substitution."""
+    n = L.shape[0]
+    eye = jnp.eye(n, dtype=L.dtype)
+
+    def body(i, Y):
+        return Y.at[i].set((eye[i] - L[i] @ Y) / L[i, i])  # rows >= i of Y are still zero
+
+    return jax.lax.fori_loop(0, n, body, jnp.zeros_like(L))
+
+
+def spd_inverse(F: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Bool[Array, ""]]:
+    """Inverse of a symmetric positive definite matrix via a Jacobi-scaled Cholesky
+    (scaling to unit diagonal first makes it accurate for badly scaled information
+    matrices). Returns `(inverse, ok)`; the inverse is 0 where `ok` is False (not
+    positive definite)."""
+    dg = jnp.diag(F)
+    good = dg > 0
+    d = jnp.where(good, 1.0 / jnp.sqrt(jnp.where(good, dg, 1.0)), 0.0)
+    Fn = F * d[:, None] * d[None, :]
+    Fn = jnp.where(jnp.all(good), Fn, jnp.eye(F.shape[0], dtype=F.dtype))
+    L = cholesky(Fn)
+    ok = jnp.all(good) & jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diag(L) > 0)
+    L = jnp.where(ok, L, jnp.eye(F.shape[0], dtype=F.dtype))
+    Y = lower_inverse(L)
+    inv = Y.T @ Y  # F_n^-1 = L^-T L^-1
+    inv = d[:, None] * inv * d[None, :]
+    inv = 0.5 * (inv + inv.T)
+    ok = ok & jnp.all(jnp.isfinite(inv))
+    return jnp.where(ok, inv, 0.0), ok
+
+
+def unrolled_cholesky_solve(
+    H: Float[Array, "n n"], g: Float[Array, " n"]
+) -> tuple[Float[Array, " n"], Bool[Array, ""]]:
+    """Solve `H x = g` for a small SPD `H` with a Cholesky unrolled over its (static)
+    size: under `vmap` XLA fuses it into a few loops over the batch, where the
+    `fori_loop` version runs `n` sequential steps. Returns `(x, ok)`, `ok` False when a
+    pivot is not positive (then `x` is meaningless but finite)."""
+    n = H.shape[0]
+    L = [[None] * n for _ in range(n)]
+    ok = jnp.array(True)
+    tiny = jnp.finfo(H.dtype).tiny
+    for j in range(n):
+        s = H[j, j] - sum((L[j][k] * L[j][k] for k in range(j)), start=0.0)
+        ok = ok & (s > tiny)
+        d = jnp.sqrt(jnp.where(s > tiny, s, 1.0))
+        L[j][j] = d
+        for i in range(j + 1, n):
+            L[i][j] = (H[i, j] - sum((L[i][k] * L[j][k] for k in range(j)), start=0.0)) / d
+    y = [None] * n
+    for i in range(n):
+        y[i] = (g[i] - sum((L[i][k] * y[k] for k in range(i)), start=0.0)) / L[i][i]
+    x = [None] * n
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum((L[k][i] * x[k] for k in range(i + 1, n)), start=0.0)) / L[i][i]
+    return jnp.stack(x), ok
+
+
+def unrolled_spd_inverse(H: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Bool[Array, ""]]:
+    """Inverse of a small SPD matrix by [`unrolled_cholesky_solve`][]; `(inverse, ok)`,
+    0 where not positive definite."""
+    eye = jnp.eye(H.shape[0], dtype=H.dtype)
+    cols, oks = jax.vmap(lambda e: unrolled_cholesky_solve(H, e))(eye)
+    inv = cols.T
+    inv = 0.5 * (inv + inv.T)
+    ok = jnp.all(oks) & jnp.all(jnp.isfinite(inv))
+    return jnp.where(ok, inv, 0.0), ok
+
+
+def gram(J: Float[Array, "m n"]) -> Float[Array, "n n"]:
+    """`J^T J` as element-wise products and a sum (no `dot`: fuses under `vmap`)."""
+    return jnp.sum(J[:, :, None] * J[:, None, :], axis=0)
+
+
+# --------------------------------------------------------------------------------------
+# Rotations from matrices: Jacobi SVD.
 
 
 def default_sweeps(n: int) -> int:

@@ -26,7 +26,11 @@ def safe_normalize(x: Float[Array, "... n"]) -> Float[Array, "... n"]:
     return jnp.where(ok, x / jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
-def adjugate3(A: Float[Array, "3 3"]) -> tuple[Float[Array, "3 3"], Array]:
-    """Adjugate and determinant of a 3x3 matrix (`A^-1 = adj / det`), no LAPACK call."""
-    adj = jnp.stack([jnp.cross(A[1], A[2]), jnp.cross(A[2], A[0]), jnp.cross(A[0], A[1])], axis=1)
-    return adj, jnp.dot(A[0], adj[:, 0])
+def as_floating(x, dtype=None) -> Array:
+    """`x` as a floating-point array: float arrays keep their dtype (float32 stays
+    float32); anything else (lists, Python numbers, integer or bool arrays) becomes
+    `dtype`, by default JAX's default float."""
+    x = jnp.asarray(x)
+    if jnp.issubdtype(x.dtype, jnp.floating):
+        return x
+    return x.astype(jnp.result_type(float) if dtype is None else dtype)

@@ -116,3 +116,38 @@ def position_error(p_a: Float[Array, "3"], p_b: Float[Array, "3"]) -> Scalar:
     return safe_norm(p_a - p_b)
 
 
+
+
+def rplus(T: jaxlie.SE3, delta: Float[Array, "6"]) -> jaxlie.SE3:
+    """`T exp(delta)` (jaxlie's right perturbation), in `T`'s dtype (jaxlie's `exp`
+    returns float64 under x64 even for float32 input)."""
+    dtype = T.wxyz_xyz.dtype
+    return jaxlie.SE3(jaxlie.manifold.rplus(T, delta).wxyz_xyz.astype(dtype))
+
+
+def rplus_params(params: Float[Array, "7"], delta: Float[Array, "6"]) -> Float[Array, "7"]:
+    """[`rplus`][] on `wxyz_xyz` parameters: a retraction for
+    `jaxloc._core.least_squares.levenberg_marquardt` over one pose."""
+    return rplus(jaxlie.SE3(params), delta).wxyz_xyz
+
+
+def identity_params(dtype) -> Float[Array, "7"]:
+    """`wxyz_xyz` of the identity pose."""
+    return jnp.zeros(7, dtype).at[0].set(1.0)
+
+
+def compose(T_a_b: jaxlie.SE3, T_b_c: jaxlie.SE3) -> jaxlie.SE3:
+    """`T_a_b @ T_b_c` in `T_a_b`'s dtype (jaxlie's product computes in the default
+    float: float64 under x64, even for float32 poses)."""
+    dtype = T_a_b.wxyz_xyz.dtype
+    return jaxlie.SE3((T_a_b @ T_b_c).wxyz_xyz.astype(dtype))
+
+
+def inverse(T: jaxlie.SE3) -> jaxlie.SE3:
+    """`T^-1` in `T`'s dtype."""
+    return jaxlie.SE3(T.inverse().wxyz_xyz.astype(T.wxyz_xyz.dtype))
+
+
+def apply(T: jaxlie.SE3, p: Float[Array, "3"]) -> Float[Array, "3"]:
+    """`T @ p` in `T`'s dtype."""
+    return (T @ p).astype(T.wxyz_xyz.dtype)

@@ -25,12 +25,23 @@ class RESULTS(optx.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
     not_visible = "A required robot was outside a camera's field of view."
     scale_unobservable = "The odometry does not fix the metric scale (zero-length moves)."
     inconsistent_fit = (
-        "The refined fit's chi-square is implausibly large for the noise model "
-        "(99.9% quantile): a wrong local minimum or an outlier measurement."
+        "The estimate's chi-square is implausibly large for the noise model "
+        "(99.9% quantile): a wrong local minimum or branch, or an outlier measurement."
     )
     ambiguous = (
-        "Two distinct minima fit the measurements about equally well (chi-square within "
-        "4): the data do not tell which is the pose; the lower one is returned."
+        "Several distinct poses fit the measurements about equally well (two minima within "
+        "chi-square 4, or several exact P3P roots): the data do not tell which is the pose; "
+        "the best fitting one is returned."
+    )
+    unobservable = (
+        "The measurements do not determine the pose: the Fisher information is singular, "
+        "the bound is absurd for the formation's size, or there are no more measurements "
+        "than unknowns (too few distinct placements seen, a robot no camera sees, a "
+        "degenerate formation)."
+    )
+    invalid_observation = (
+        "An observation is outside its domain (a zero or negative odometry distance or "
+        "standard deviation)."
     )
 
 

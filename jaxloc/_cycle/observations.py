@@ -2,15 +2,7 @@
 
 The simulator, the image front end and a real robot all produce these types, and the
 solvers consume only these, so real measurements enter exactly where simulated ones do.
-
-Indexing used throughout jaxloc:
-
-- robots `0, 1, 2` are the ground robots C1 (PTZ camera), C2, C3 (omnidirectional);
-- a *step* is one snapshot of the team (one formation). The sequential strategy has
-  4 steps (start, after C2 moved, after C3 moved, after C1 moved); the concurrent
-  strategy has 3 (start, after move 1 of C2 and C3, after move 2).
-- moves, in order: sequential `[C2, C3, C1]`; concurrent `[C2 move 1, C3 move 1,
-  C2 move 2, C3 move 2]`.
+Indexing (robots, steps, moves) is that of `jaxloc._cycle.layout`.
 """
 
 import equinox as eqx
@@ -20,40 +12,41 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-
-STRATEGIES = ("sequential", "concurrent")
-
-
-def num_steps(strategy: str) -> int:
-    """Number of formations (snapshots) in one cycle of `strategy`."""
-    return {"sequential": 4, "concurrent": 3}[check_strategy(strategy)]
-
-
-def num_moves(strategy: str) -> int:
-    """Number of odometry-measured moves in one cycle of `strategy`."""
-    return {"sequential": 3, "concurrent": 4}[check_strategy(strategy)]
+from .layout import (
+    check_strategy,
+    move_start_step as move_start_step,
+    moving_robot as moving_robot,
+    num_moves,
+    num_steps,
+    STRATEGIES as STRATEGIES,
+)
 
 
-def moving_robot(strategy: str) -> np.ndarray:
-    """Index of the robot that makes each move, shape `(moves,)`."""
-    return {"sequential": np.array([1, 2, 0]), "concurrent": np.array([1, 2, 1, 2])}[
-        check_strategy(strategy)
-    ]
+#: Relative floor of an odometry sigma under `jit` (a noise-free simulation's exact
+#: odometry): sigma >= `ODOMETRY_SIGMA_FLOOR` x the cycle's longest move. Eager
+#: observations with a non-positive sigma are rejected by [`jaxloc.CycleObservations`][].
+ODOMETRY_SIGMA_FLOOR = 1e-6
 
 
-def move_start_step(strategy: str) -> np.ndarray:
-    """Step at which each move starts (it ends at the next step), shape `(moves,)`."""
-    return {"sequential": np.array([0, 1, 2]), "concurrent": np.array([0, 0, 1, 1])}[
-        check_strategy(strategy)
-    ]
-
-
-def check_strategy(strategy: str) -> str:
-    if strategy not in STRATEGIES:
+def _floating(name: str, x, dtype=None) -> Array:
+    """`x` as a floating-point array: float arrays keep their dtype (float32 stays
+    float32); anything else (lists, Python or integer numbers) takes `dtype`, or the
+    default float."""
+    is_float_array = isinstance(x, (jax.Array, np.ndarray, np.generic)) and jnp.issubdtype(
+        x.dtype, jnp.floating
+    )
+    x = jnp.asarray(x)
+    if not (jnp.issubdtype(x.dtype, jnp.floating) or jnp.issubdtype(x.dtype, jnp.integer)):
         raise ValueError(
-            f"`strategy` must be one of {STRATEGIES}; got {strategy!r}."
+            f"`CycleObservations({name}=...)` must be real numbers; got dtype {x.dtype}."
         )
-    return strategy
+    if is_float_array:
+        return x
+    return x.astype(jnp.result_type(float) if dtype is None else dtype)
+
+
+def _concrete(x) -> np.ndarray | None:
+    return None if isinstance(x, jax.core.Tracer) else np.asarray(x)
 
 
 class CycleObservations(eqx.Module):
@@ -68,13 +61,22 @@ class CycleObservations(eqx.Module):
       The diagonal `i == j` is ignored.
     - `overhead`: unit bearings of the ground robots in the overhead camera's
       optical frame, shape `(steps, 3, 3)`: `overhead[k, j]` points at robot `j` at step `k`.
-    - `overhead_visible`: whether each overhead sighting exists, shape `(steps, 3)`.
-    - `odometry`: travelled straight-line distance of each move (m), shape `(moves,)`.
-    - `odometry_sigma`: its standard deviation (m), shape `(moves,)`.
+    - `overhead_visible`: whether each overhead sighting exists, shape `(steps, 3)`;
+      default: where `overhead` is finite.
+    - `odometry`: travelled straight-line distance of each move (m), shape `(moves,)`;
+      finite and positive.
+    - `odometry_sigma`: its standard deviation (m), shape `(moves,)` (or a scalar for
+      every move); finite and positive.
     - `mutual_pixels`, `overhead_pixels`: the pixels the bearings came from, shapes
       `(steps, 3, 3, 2)` and `(steps, 3, 2)` (NaN where not measured). Used by
       refinement, which weighs residuals in each camera's image.
     - `strategy`: `"sequential"` or `"concurrent"` (static).
+
+    A sighting that was not made (a marker occluded or not detected) is missing data:
+    NaN bearings (and pixels), never a default value. Arrays are floating point: float
+    arrays keep their dtype (float32 stays float32), integers and Python numbers become
+    floats. Values are checked when they are known (not under `jit`): non-positive or
+    non-finite odometry distances or sigmas raise a `ValueError` naming the field.
     """
 
     mutual: Float[Array, "steps 3 3 3"]
@@ -99,22 +101,23 @@ class CycleObservations(eqx.Module):
     ):
         self.strategy = check_strategy(strategy)
         steps, moves = num_steps(strategy), num_moves(strategy)
-        self.mutual = jnp.asarray(mutual)
-        self.overhead = jnp.asarray(overhead)
-        self.odometry = jnp.asarray(odometry)
-        self.odometry_sigma = jnp.broadcast_to(
-            jnp.asarray(odometry_sigma, dtype=self.odometry.dtype), self.odometry.shape
-        )
+        self.mutual = _floating("mutual", mutual)
         dtype = self.mutual.dtype
+        self.overhead = _floating("overhead", overhead, dtype)
+        self.odometry = _floating("odometry", odometry, dtype)
+        sigma = _floating("odometry_sigma", odometry_sigma, self.odometry.dtype)
+        if sigma.ndim == 0:
+            sigma = jnp.broadcast_to(sigma, self.odometry.shape)
+        self.odometry_sigma = sigma
         if overhead_visible is None:
-            overhead_visible = jnp.ones(self.overhead.shape[:-1], dtype=bool)
+            overhead_visible = jnp.all(jnp.isfinite(self.overhead), axis=-1)
         self.overhead_visible = jnp.asarray(overhead_visible, dtype=bool)
         if mutual_pixels is None:
             mutual_pixels = jnp.full(self.mutual.shape[:-1] + (2,), jnp.nan, dtype)
         if overhead_pixels is None:
             overhead_pixels = jnp.full(self.overhead.shape[:-1] + (2,), jnp.nan, dtype)
-        self.mutual_pixels = jnp.asarray(mutual_pixels)
-        self.overhead_pixels = jnp.asarray(overhead_pixels)
+        self.mutual_pixels = _floating("mutual_pixels", mutual_pixels, dtype)
+        self.overhead_pixels = _floating("overhead_pixels", overhead_pixels, dtype)
         expected = {
             "mutual": (steps, 3, 3, 3),
             "overhead": (steps, 3, 3),
@@ -131,6 +134,14 @@ class CycleObservations(eqx.Module):
                 raise ValueError(
                     f"`CycleObservations({name}=...)` must have shape {shape} for the "
                     f"{strategy} strategy; got {got}."
+                )
+        for name in ("odometry", "odometry_sigma"):
+            value = _concrete(getattr(self, name))
+            if value is not None and not np.all(np.isfinite(value) & (value > 0)):
+                what = "distances (m)" if name == "odometry" else "standard deviations (m)"
+                raise ValueError(
+                    f"`CycleObservations({name}=...)` must be finite positive {what}; got "
+                    f"{np.array2string(value, precision=6, threshold=12)}."
                 )
 
     @property

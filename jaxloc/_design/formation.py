@@ -19,7 +19,7 @@ Moves come in two kinds:
 
 The initial triangle is the isosceles one of `base` and `side`, or, with `initial_xy`
 given, any triangle (`Scenario.initial_xy`). Every field has its counterpart in a
-[`jaxloc.Scenario`][] (the PTZ setting in `scenario.ptz`), so a formation is written as a
+[`jaxloc.Scenario`][] (the PTZ setting in `scenario.rig.ptz`), so a formation is written as a
 scenario file ([`jaxloc.Formation.to_scenario`][]) that `jaxloc simulate` runs unchanged.
 
 The constraints are smooth functions `g >= 0` (feasible) of the placed formation, in
@@ -36,10 +36,13 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
+from .._cameras.models import PTZCamera
 from .._core.numerics import safe_norm
-from .._cycle.observations import CyclePoses, move_start_step, moving_robot, num_moves, num_steps
+from .._cycle.layout import move_start_step, moving_robot, num_moves, num_steps
+from .._cycle.observations import CyclePoses
+from .._cycle.sightings import matvec_t
 from .._sim.scenario import Scenario
+from .._sim.simulate import camera_points, overhead_frames
 from .._sim.world import body_frame_on_surface, formation_xy
 
 
@@ -187,9 +190,9 @@ class Formation(eqx.Module):
             headings=scenario.headings,
             overhead_xy=scenario.overhead_xy,
             overhead_heading=scenario.overhead_heading,
-            pan=scenario.ptz.pan,
-            tilt=scenario.ptz.tilt,
-            zoom=scenario.ptz.zoom,
+            pan=_ptz(scenario).pan,
+            tilt=_ptz(scenario).tilt,
+            zoom=_ptz(scenario).zoom,
             move_mean=scenario.move_mean,
             moves=moves,
             initial_xy=scenario.initial_xy,
@@ -212,7 +215,7 @@ class Formation(eqx.Module):
         return eqx.tree_at(
             lambda s: (
                 s.base, s.side, s.headings, s.overhead_xy, s.overhead_heading,
-                s.ptz.pan, s.ptz.tilt, s.ptz.zoom, s.move_mean,
+                s.rig.ptz.pan, s.rig.ptz.tilt, s.rig.ptz.zoom, s.move_mean,
             ),
             scenario,
             tuple(
@@ -230,21 +233,35 @@ class Formation(eqx.Module):
         Raises `ValueError` if a value is out of the scenario's domain (e.g. `zoom`
         outside `[0, 1]`, a non-positive move length).
         """
+        _ptz(scenario)
         s = self.apply(scenario)
-        # Rebuild through the constructor so that its validation runs on the new values.
+        # Rebuild through the constructors so that their validation runs on the new values.
+        rig = eqx.tree_at(lambda r: r.ptz, s.rig, _revalidated(s.rig.ptz))
         return Scenario(
             ground=s.ground, ceiling=s.ceiling, base=s.base, side=s.side,
             headings=s.headings, overhead_xy=s.overhead_xy,
-            overhead_heading=s.overhead_heading, overhead=s.overhead,
-            ptz=type(s.ptz)(s.ptz.pan, s.ptz.tilt, s.ptz.zoom, s.ptz.hfov_wide,
-                            s.ptz.hfov_tele, s.ptz.dist, s.ptz.image_size),
-            omni2=s.omni2, omni3=s.omni3, move_mean=s.move_mean, move_std=s.move_std,
-            min_separation=s.min_separation, pixel_sigma=s.pixel_sigma,
-            odometry_sigma_rel=s.odometry_sigma_rel, strategy=s.strategy,
-            move_candidates=s.move_candidates, noise_model=s.noise_model,
+            overhead_heading=s.overhead_heading, move_mean=s.move_mean, move_std=s.move_std,
+            min_separation=s.min_separation, odometry_sigma_rel=s.odometry_sigma_rel,
+            strategy=s.strategy, move_candidates=s.move_candidates,
             require_overhead=s.require_overhead, require_ptz=s.require_ptz,
-            require_omni=s.require_omni, initial_xy=s.initial_xy, moves=s.moves,
+            require_omni=s.require_omni, initial_xy=s.initial_xy, moves=s.moves, rig=rig,
         )  # fmt: skip
+
+
+def _ptz(scenario: Scenario) -> PTZCamera:
+    """The scenario's C1 camera, which formation design steers: a `PTZCamera`."""
+    if not isinstance(scenario.rig.ptz, PTZCamera):
+        raise ValueError(
+            "Formation design sets C1's pan, tilt and zoom: `scenario.rig.ptz` must be a "
+            f"PTZCamera; got {type(scenario.rig.ptz).__name__}."
+        )
+    return scenario.rig.ptz
+
+
+def _revalidated(camera):
+    """`camera` rebuilt through its constructor (its checks run on the current values)."""
+    fields = {f: getattr(camera, f) for f in camera.__dataclass_fields__}
+    return type(camera)(**fields)
 
 
 def formation_filter(formation: Formation, free: tuple[str, ...] | str = "all") -> Formation:
@@ -335,15 +352,6 @@ class Placement(eqx.Module):
         return CyclePoses(T_world_body=body, T_world_overhead=over)
 
 
-def _overhead_frame(formation: Formation, scenario: Scenario, dtype):
-    R_climber, t = body_frame_on_surface(
-        scenario.ceiling,
-        formation.overhead_xy.astype(dtype),
-        formation.overhead_heading.astype(dtype),
-    )
-    return R_climber, R_climber @ jnp.asarray(R_BODY_OVERHEAD, dtype), t
-
-
 def place_fixed(formation: Formation, scenario: Scenario) -> Placement:
     """Place a formation with fixed moves in the scenario's world, the way
     [`jaxloc.simulate_cycle`][] places a random move: the mover steps `length` along
@@ -377,7 +385,9 @@ def place_fixed(formation: Formation, scenario: Scenario) -> Placement:
     R_b, p_b = body_frame_on_surface(
         scenario.ground, xy_all, jnp.broadcast_to(headings, xy_all.shape[:-1])
     )
-    R_climber, R_over, t_over = _overhead_frame(formation, scenario, dtype)
+    R_climber, _, R_over, t_over = overhead_frames(
+        scenario, formation.overhead_xy, formation.overhead_heading, dtype
+    )
     return Placement(R_b, p_b, R_over, t_over, R_climber)
 
 
@@ -507,29 +517,27 @@ def constraint_values(
     # Per-step margin: full at step 0, or everywhere if strict.
     full = np.ones(steps) if strict_steps else (np.arange(steps) == 0).astype(float)
     out = {}
-    rel = jnp.einsum("kiab,kija->kijb", R, p[:, None, :, :] - p[:, :, None, :])
+    rig = scenario.rig
+    mutual_cam, p_cam = camera_points(scenario, R, p, placement.R_overhead, placement.p_overhead)
     if scenario.require_overhead:
-        d_over = p - placement.p_overhead[None, None]
-        p_cam = jnp.einsum("ab,kja->kjb", placement.R_overhead, d_over)
         m = limits.image_margin_px * full[:, None]
-        out["overhead_image"] = _image_margins(scenario.overhead, p_cam, m).reshape(-1)
+        out["overhead_image"] = _image_margins(rig.overhead, p_cam, m).reshape(-1)
         out["overhead_depth"] = (p_cam[..., 2] - limits.depth_min).reshape(-1)
     if scenario.require_ptz:
-        ptz = scenario.ptz
-        ptz = eqx.tree_at(lambda c: (c.pan, c.tilt, c.zoom), ptz,
+        ptz = eqx.tree_at(lambda c: (c.pan, c.tilt, c.zoom), _ptz(scenario),
                           (formation.pan.astype(dtype), formation.tilt.astype(dtype),
                            formation.zoom.astype(dtype)))  # fmt: skip
-        pts = jnp.einsum("ab,...a->...b", jnp.asarray(R_BODY_PTZ, dtype), rel[:, 0, 1:])
-        opt = ptz._to_optical(pts)
+        # The PTZ's base-frame points into its optical frame: R_base_optical^T p.
+        R_opt = ptz.optical_rotation().as_matrix().astype(dtype)
+        opt = matvec_t(R_opt, mutual_cam[:, 0, 1:])
         m = limits.image_margin_px * full[:, None]
         out["ptz_image"] = _image_margins(ptz.pinhole(), opt, m).reshape(-1)
         out["ptz_depth"] = (opt[..., 2] - limits.depth_min).reshape(-1)
     if scenario.require_omni:
         g = []
-        for i, cam in ((1, scenario.omni2), (2, scenario.omni3)):
+        for i, cam in ((1, rig.omni2), (2, rig.omni3)):
             others = [j for j in range(3) if j != i]
-            pts = jnp.einsum("ab,...a->...b", jnp.asarray(R_BODY_OMNI, dtype), rel[:, i, others])
-            e = cam.elevation(pts)
+            e = cam.elevation(mutual_cam[:, i, others])
             m = limits.elevation_margin * full[:, None]
             g += [e - cam.elevation_min - m, cam.elevation_max - e - m]  # (steps, 2)
         out["omni_elevation"] = jnp.concatenate([x.reshape(-1) for x in g])

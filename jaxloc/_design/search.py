@@ -24,13 +24,16 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, PRNGKeyArray, Scalar
 
+from .._core.linalg import logdet3
 from .._core.results import RESULTS
+from .._cycle.layout import CAMERAS
+from .._model.covariance import cycle_crlb
 from .._refine.cycle import refine_cycle
 from .._sim.scenario import Scenario
-from .._sim.simulate import _visibility
-from .._solvers.strategies import localize_cycle_methods
+from .._sim.simulate import camera_points, sightings_in_view
+from .._solvers.localize import localize_cycle_methods
 from .._study.engine import LARGE_PROGRAM_COMPILER_OPTIONS, run_study
-from .._study.trial import CAMERAS, REFINE_MAX_STEPS, score
+from .._study.trial import REFINE_MAX_STEPS, score
 from .formation import (
     constraint_penalty,
     constraint_values,
@@ -76,26 +79,14 @@ def simulate_formation(formation: Formation, scenario: Scenario, key: PRNGKeyArr
     return truth.poses, obs, pl, ok
 
 
-def _relative(pl: Placement):
-    R, p = pl.R_body, pl.p_body
-    return jnp.einsum("kiab,kija->kijb", R, p[:, None, :, :] - p[:, :, None, :])
-
-
 def _all_visible(scn: Scenario, pl: Placement):
-    p_over = jnp.einsum("ab,kja->kjb", pl.R_overhead, pl.p_body - pl.p_overhead[None, None])
-    ok, _, _ = _visibility(scn, _relative(pl), p_over)
+    cams = camera_points(scn, pl.R_body, pl.p_body, pl.R_overhead, pl.p_overhead)
+    ok, _, _ = sightings_in_view(scn, *cams)
     return jnp.all(ok)
 
 
 # --------------------------------------------------------------------------------------
 # Objectives.
-
-
-def _logdet3(P):
-    # Closed-form 3x3 determinant (no LAPACK in the hot path, DESIGN §8).
-    det = jnp.dot(P[0], jnp.cross(P[1], P[2]))
-    ok = det > 0
-    return jnp.where(ok, jnp.log(jnp.where(ok, det, 1.0)), -1e3)
 
 
 def _weights(weights, dtype):
@@ -141,8 +132,6 @@ def crlb_objective(
     `"feasible"` `(K,)` (every required sighting exists), and `"penalty_inputs"`, the
     placements `(K, ...)`, for [`design_penalty`][].
     """
-    from .._refine.covariance import cycle_crlb
-
     if criterion not in CRITERIA:
         raise ValueError(f"`criterion` must be one of {CRITERIA}; got {criterion!r}.")
     dtype = scenario.base.dtype
@@ -155,12 +144,12 @@ def crlb_objective(
             poses, ok = pl.poses(), _all_visible(scn, pl)
         else:
             poses, _, pl, ok = simulate_formation(formation, scenario, key)
-        P = cycle_crlb(scn, poses).position
+        P = cycle_crlb(scn.rig, poses, odometry_sigma_rel=scn.odometry_sigma_rel).position
         tr = jnp.trace(P, axis1=-2, axis2=-1)
         if criterion == "A":
             v = jnp.sum(w * tr)
         else:
-            v = jnp.sum(jnp.where(w > 0, w * jax.vmap(_logdet3)(P), 0.0))
+            v = jnp.sum(jnp.where(w > 0, w * jax.vmap(logdet3)(P), 0.0))
         return v, tr, ok, pl
 
     v, tr, ok, pl = jax.vmap(one)(_draws(formation, keys))
@@ -194,12 +183,12 @@ def mc_objective(
     def one(key):
         scn = formation.apply(scenario)
         poses, obs, pl, visible = simulate_formation(formation, scenario, key)
-        (start,) = localize_cycle_methods(obs, ("robust",))
+        (start,) = localize_cycle_methods(obs, scn.rig, ("robust",))
         start = jax.lax.stop_gradient(start)
         est = refine_cycle(
-            obs, scn, start, solver=_MC_SOLVER, max_steps=REFINE_MAX_STEPS, throw=False
+            obs, scn.rig, start, solver=_MC_SOLVER, max_steps=REFINE_MAX_STEPS, throw=False
         )
-        pos, _, _, diff = score(est.poses, poses)
+        pos, _, _, diff = score(est.poses, poses, scn.rig)
         ok = visible & (est.result == RESULTS.successful)
         sq = jnp.sum(diff * diff, axis=-1)
         return jnp.where(ok, jnp.sum(w * sq), 0.0), sq, ok, visible, pl
@@ -591,17 +580,16 @@ def objective_value(
     """The unpenalized objective of [`design_formation`][] at `formation` with the draws
     it would use for `key` (same split), e.g. to compare formations on common draws."""
     k_draws, _ = jr.split(key)
-    fn = _jitted_objective(objective, criterion, tuple(float(w) for w in weights))
-    return fn(formation, scenario, jr.split(k_draws, num_draws))[0]
+    weights = tuple(float(w) for w in weights)
+    value, _ = _objective(
+        formation, scenario, jr.split(k_draws, num_draws), objective=objective,
+        criterion=criterion, weights=weights,
+    )  # fmt: skip
+    return value
 
 
-_JITTED: dict = {}
-
-
-def _jitted_objective(objective: str, criterion: str, weights: tuple):
-    # One jitted function per configuration, so that formations of one structure share a
-    # compilation across calls (a fresh `filter_jit` wrapper would recompile every time).
-    k = (objective, criterion, weights)
-    if k not in _JITTED:
-        _JITTED[k] = eqx.filter_jit(_objective_fn(objective, criterion, weights))
-    return _JITTED[k]
+@eqx.filter_jit
+def _objective(formation, scenario, keys, *, objective: str, criterion: str, weights: tuple):
+    # Compiled once per configuration (the keyword arguments are static) and formation
+    # structure, shared by every call.
+    return _objective_fn(objective, criterion, weights)(formation, scenario, keys)

@@ -1,3 +1,3 @@
-"""Maximum-likelihood refinement, covariance and Cramér–Rao bound of a cycle and of one
-camera pose. Imports `_core`, `_cameras`, `_cycle`, `_solvers`.
+"""Maximum-likelihood refinement of a whole cycle and of one camera pose. Imports `_core`,
+`_cameras`, `_cycle`, `_model`, `_solvers`.
 """

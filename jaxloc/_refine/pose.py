@@ -3,12 +3,11 @@ r"""Maximum-likelihood refinement of one camera pose from known world points (DE
 [`jaxloc.refine_overhead_pose`][] minimises the (optionally robust) reprojection error in
 the image over the SE(3) tangent around the current pose (`T = T0 exp(delta)`,
 `delta = (v, omega)`, jaxlie's right perturbation `jaxlie.manifold.rplus`). Default
-solver: jaxloc's own Levenberg--Marquardt with the chain-rule Jacobian of the residuals
-(camera projection Jacobian times `dq/d delta = [R, R (e_k x X)]`), the 6x6 normal
-equations as element-wise sums and an unrolled Cholesky: no LAPACK, no batched `dot`
-(DESIGN §8), ~5x faster than `optx.least_squares` at the same minimum. Gradients through it
-by the implicit function theorem (custom JVP); the optimistix solvers (`"optx-lm"`,
-`"optx-gn"`) use optimistix's implicit adjoint.
+solver: jaxloc's least-squares kernel (`jaxloc._core.least_squares`) with the chain-rule
+Jacobian of the residuals (camera projection Jacobian times `dq/d delta = R [I, -[X]x]`),
+the 6x6 normal equations as element-wise sums and an unrolled Cholesky: no LAPACK, no
+batched `dot` (DESIGN §8). Gradients through it by the implicit function theorem; the
+optimistix solvers (`"optx-lm"`, `"optx-gn"`) use optimistix's implicit adjoint.
 """
 
 import functools as ft
@@ -21,17 +20,14 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from .._cameras.models import AbstractCamera
-from .._core.least_squares import (
-    _implicit_pose_step,
-    _inverse6,
-    _make_solver,
-    _pose_lm,
-    _rplus,
-)
+from .._core.least_squares import implicit_step, levenberg_marquardt, optx_solver
+from .._core.linalg import gram, unrolled_spd_inverse
 from .._core.numerics import safe_sqrt
+from .._core.poses import apply, inverse, rplus, rplus_params
 from .._core.results import raise_if_failed, RESULTS
-from .._solvers.dlt import identity_like, PoseSolution, where_pose
-from .._solvers.overhead import rotation_block
+from .._cycle.sightings import matmul, skew
+from .._model.measurements import project_with_jacobian
+from .._solvers.pose_problem import identity_like, no_alternatives, PoseSolution, where_pose
 
 
 LOSSES = (None, "huber", "cauchy")
@@ -71,13 +67,13 @@ def _robust_factor(s: Float[Array, " n"], loss: str | None, c) -> Float[Array, "
 
 def _point_residuals(T_cam_world: jaxlie.SE3, camera, X, uv, weight):
     """Whitened reprojection residuals `weight_i * (project(T X_i) - uv_i)`, `(n, 2)`."""
-    pred = camera.project(jax.vmap(T_cam_world.apply)(X))
+    pred = camera.project(jax.vmap(ft.partial(apply, T_cam_world))(X))
     return weight[:, None] * (pred - uv)
 
 
 def _pose_residuals(delta, args, *, loss):
     T0, camera, X, uv, weight, c = args
-    T = jaxlie.manifold.rplus(T0, delta)
+    T = rplus(T0, delta)
     e = _point_residuals(T, camera, X, uv, weight)
     f = _robust_factor(jnp.sum(e * e, axis=-1), loss, c)
     return (f[:, None] * e).reshape(-1)
@@ -103,11 +99,10 @@ def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, l
     solver minimises $\sum \rho$ with its true gradient.
     """
     R, q = _camera_points(T_cam_world, X)
-    pred = camera.project(q)
-    Jp = jax.vmap(jax.jacfwd(camera.project))(q)  # (n, 2, 3)
+    pred, Jp = project_with_jacobian(camera, q)  # (n, 2), (n, 2, 3)
     e = weight[:, None] * (pred - uv)
     A = weight[:, None, None] * jnp.sum(Jp[:, :, :, None] * R[None, None, :, :], axis=2)
-    Jw = rotation_block(A, X)
+    Jw = -matmul(A, skew(X))
     Je = jnp.concatenate([A, Jw], axis=-1)  # (n, 2, 6)
     if loss is None:
         return e, Je
@@ -118,15 +113,16 @@ def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, l
     return f[:, None] * e, J
 
 
-def _pose_model(T_cam_world, camera, X, uv, weight, c, loss):
-    r, J = _residuals_and_jacobian(T_cam_world, camera, X, uv, weight, c, loss)
+def _pose_model(params, camera, X, uv, weight, c, loss):
+    r, J = _residuals_and_jacobian(jaxlie.SE3(params), camera, X, uv, weight, c, loss)
     return r.reshape(-1), J.reshape(-1, 6)
 
 
-def _implicit_residuals(T_cam_world, args, static):
+def _implicit_residuals(params, delta, args, static):
     loss, camera_static = static
     camera_dyn, X, uv, weight, c = args
     camera = eqx.combine(camera_dyn, camera_static)
+    T_cam_world = rplus(jaxlie.SE3(params), delta)
     e = _point_residuals(T_cam_world, camera, X, uv, weight)
     f = _robust_factor(jnp.sum(e * e, axis=-1), loss, c)
     return (f[:, None] * e).reshape(-1)
@@ -150,29 +146,36 @@ def _refine_pose_impl(
     T0 = jaxlie.SE3(T0.wxyz_xyz.astype(dtype))
     # Masked points sit in front of the camera with zero weight: they contribute nothing,
     # and `project` stays smooth there.
-    ahead = T0.inverse() @ jnp.array([0.0, 0.0, 1.0], dtype)
+    ahead = apply(inverse(T0), jnp.array([0.0, 0.0, 1.0], dtype))
     X = jnp.where(use[:, None], X, ahead)
     c = jnp.asarray(loss_scale, dtype)
     if solver in ("lm", "gn"):
-        # The loop is not differentiated: `_implicit_pose_step` carries the derivatives.
+        # The loop is not differentiated: `implicit_step` carries the derivatives.
         T0s, cam_s, Xs, uvs, ws, cs = jax.tree.map(
             jax.lax.stop_gradient, (T0, camera, X, uv, weight, c)
         )
-        pose, num_steps, converged = _pose_lm(
-            lambda T: _pose_model(T, cam_s, Xs, uvs, ws, cs, loss),
-            T0s,
-            damped=solver == "lm",
+        out = levenberg_marquardt(
+            lambda x: _pose_model(x, cam_s, Xs, uvs, ws, cs, loss),
+            rplus_params,
+            lambda x: jnp.max(jnp.abs(x[4:])),
+            T0s.wxyz_xyz,
+            num_residuals=2 * X.shape[0],
+            num_unknowns=6,
             max_steps=max_steps,
             rtol=rtol,
             atol=atol,
             active=(count >= 3) & ~nonfinite,
+            damped=solver == "lm",
+            lam0=1e-3 if solver == "lm" else 0.0,
+            final_gauss_newton=True,
         )
+        num_steps, converged = out.num_steps, out.converged
         camera_dyn, camera_static = eqx.partition(camera, eqx.is_inexact_array)
-        step = _implicit_pose_step(
-            _implicit_residuals, (loss, camera_static), pose.wxyz_xyz,
+        step = implicit_step(
+            _implicit_residuals, 6, (loss, camera_static), out.x,
             (camera_dyn, X, uv, weight, c),
-        )
-        pose = _rplus(pose, step, dtype)
+        )  # fmt: skip
+        pose = rplus(jaxlie.SE3(out.x), step)
         result = RESULTS.where(
             converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached
         )
@@ -180,13 +183,13 @@ def _refine_pose_impl(
         fn = ft.partial(_pose_residuals, loss=loss)
         sol = optx.least_squares(
             fn,
-            _make_solver(solver.removeprefix("optx-"), rtol, atol),
+            optx_solver(solver.removeprefix("optx-"), rtol, atol),
             jnp.zeros(6, dtype),
             args=(T0, camera, X, uv, weight, c),
             max_steps=max_steps,
             throw=False,
         )
-        pose = _rplus(T0, sol.value, dtype)
+        pose = rplus(T0, sol.value)
         num_steps = sol.stats["num_steps"]
         result = RESULTS.promote(sol.result)
     # First-order covariance at the solution (Gaussian model, no robust weights):
@@ -194,7 +197,7 @@ def _refine_pose_impl(
     # residuals, delta the tangent of T_cam_world around the refined pose.
     _, J = _residuals_and_jacobian(pose, camera, X, uv, weight, c, None)
     J = J.reshape(-1, 6)
-    cov, cov_ok = _inverse6(jnp.sum(J[:, :, None] * J[:, None, :], axis=0))
+    cov, cov_ok = unrolled_spd_inverse(gram(J))
     e = _point_residuals(pose, camera, X, uv, use.astype(dtype))
     sq = jnp.sum(e * e) / jnp.maximum(count, 1).astype(dtype)
     result = RESULTS.where(cov_ok, result, RESULTS.degenerate_configuration)
@@ -211,7 +214,7 @@ def _refine_pose_impl(
         "rms_pixel_error": safe_sqrt(sq),
         "covariance": jnp.where(success, cov, 0.0),
     }
-    return PoseSolution(pose=pose, result=result, stats=stats)
+    return PoseSolution(pose, result, stats, *no_alternatives(dtype, 0))
 
 
 def refine_overhead_pose(

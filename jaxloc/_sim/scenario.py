@@ -1,6 +1,8 @@
-r"""A simulation scenario: world, formation, cameras, moves, noise; and its file format.
+r"""A simulation scenario: the world, the formation, the moves, and the team's rig.
 
-A [`jaxloc.Scenario`][] holds everything [`jaxloc.simulate_cycle`][] needs. Its float
+A [`jaxloc.Scenario`][] holds everything [`jaxloc.simulate_cycle`][] needs: a
+[`jaxloc.Rig`][] (the team's cameras, mounts, markers and pixel noise, which is all the
+solvers see) and the world it moves in. Its float
 parameters are array leaves (so `jax.grad`/`jax.vmap` reach them, e.g. for formation
 design); its configuration (strategy, noise model, candidate count, visibility
 requirements) is static.
@@ -17,9 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._cameras.models import OmniCamera, PinholeCamera, PTZCamera
+from .._cameras.models import AbstractCamera
 from .._cameras.presets import paper_omni_camera, paper_overhead_camera, paper_ptz_camera
-from .._cycle.observations import num_moves, STRATEGIES
+from .._cycle.layout import num_moves, STRATEGIES
+from .._cycle.rig import NOISE_MODELS as NOISE_MODELS, Rig
 from .world import (
     AbstractSurface,
     FlatSurface,
@@ -29,7 +32,6 @@ from .world import (
 )
 
 
-NOISE_MODELS = ("paper", "gaussian")
 #: Surface field names whose file key (and constructor argument) differs.
 SURFACE_FIELD_KEYS = {"z0": "height"}
 
@@ -70,7 +72,11 @@ class Scenario(eqx.Module):
     - `overhead_xy`: `(x, y)` of the climbing robot on the ceiling (m), shape `(2,)`.
     - `overhead_heading`: its heading (rad); default 90°, so that the image's long axis
       (camera x = body -y) runs along `E` +x, the triangle's long direction.
-    - `overhead`, `ptz`, `omni2`, `omni3`: the cameras of C, C1, C2, C3.
+    - `rig`: the team's [`jaxloc.Rig`][]: the cameras of C, C1, C2, C3 (`rig.overhead`,
+      `rig.ptz`, `rig.omni2`, `rig.omni3`), their mounts, the markers and the pixel noise
+      (`rig.pixel_sigma`, `rig.noise_model`). The simulator draws pixel noise from it;
+      the solvers see only it. Formation design moves C1's pan, tilt and zoom, so its
+      camera must be a [`jaxloc.PTZCamera`][] there.
     - `move_mean`, `move_std`: move length ~ N(mean, std) (m), clipped to at least
       0.05 m. Unused with fixed `moves`.
     - `moves`: `None` (default: random moves, see [`jaxloc.simulate_cycle`][]) or the
@@ -82,12 +88,9 @@ class Scenario(eqx.Module):
       infeasible.
     - `min_separation`: smallest allowed distance between two ground robots after a move
       (m), a collision guard (the Pioneer robots are ~0.4 m across). Our addition.
-    - `pixel_sigma`: pixel noise scale (px), see `noise_model`.
     - `odometry_sigma_rel`: relative standard deviation of a move's measured distance.
     - `strategy` (static): `"sequential"` or `"concurrent"` (DESIGN §3).
     - `move_candidates` (static): candidates drawn per move for branch-free resampling.
-    - `noise_model` (static): `"paper"` (offset of radius ~ N(0, sigma), uniform
-      direction: the paper's Sec. IV.A) or `"gaussian"` (N(0, sigma^2) per pixel axis).
     - `require_overhead`, `require_ptz`, `require_omni` (static): which sightings every
       formation must allow (the overhead camera sees all three robots; C1's PTZ sees C2
       and C3; each omni camera sees the two others inside its elevation band).
@@ -101,19 +104,14 @@ class Scenario(eqx.Module):
     headings: Float[Array, "3"]
     overhead_xy: Float[Array, "2"]
     overhead_heading: Float[Array, ""]
-    overhead: PinholeCamera
-    ptz: PTZCamera
-    omni2: OmniCamera
-    omni3: OmniCamera
+    rig: Rig
     move_mean: Float[Array, ""]
     move_std: Float[Array, ""]
     moves: Float[Array, "moves 2"] | None
     min_separation: Float[Array, ""]
-    pixel_sigma: Float[Array, ""]
     odometry_sigma_rel: Float[Array, ""]
     strategy: str = eqx.field(static=True)
     move_candidates: int = eqx.field(static=True)
-    noise_model: str = eqx.field(static=True)
     require_overhead: bool = eqx.field(static=True)
     require_ptz: bool = eqx.field(static=True)
     require_omni: bool = eqx.field(static=True)
@@ -127,14 +125,14 @@ class Scenario(eqx.Module):
         headings: Float[ArrayLike, "3"] = (0.0, 0.0, 0.0),
         overhead_xy: Float[ArrayLike, "2"] = (0.0, 0.0),
         overhead_heading: Float[ArrayLike, ""] = 0.5 * math.pi,
-        overhead: PinholeCamera | None = None,
-        ptz: PTZCamera | None = None,
-        omni2: OmniCamera | None = None,
-        omni3: OmniCamera | None = None,
+        overhead: AbstractCamera | None = None,
+        ptz: AbstractCamera | None = None,
+        omni2: AbstractCamera | None = None,
+        omni3: AbstractCamera | None = None,
         move_mean: Float[ArrayLike, ""] = 0.8,
         move_std: Float[ArrayLike, ""] = 0.2,
         min_separation: Float[ArrayLike, ""] = 0.4,
-        pixel_sigma: Float[ArrayLike, ""] = 2.0,
+        pixel_sigma: Float[ArrayLike, ""] | Float[ArrayLike, "4"] = 2.0,
         odometry_sigma_rel: Float[ArrayLike, ""] = 0.01,
         strategy: str = "sequential",
         move_candidates: int = 32,
@@ -144,6 +142,7 @@ class Scenario(eqx.Module):
         require_omni: bool = True,
         initial_xy: Float[ArrayLike, "3 2"] | None = None,
         moves: Float[ArrayLike, "moves 2"] | None = None,
+        rig: Rig | None = None,
     ):
         """**Arguments:** the fields above; `None` surfaces and cameras take the paper's
         defaults: `SaddleSurface(-8, 8)`, `SinusoidSurface(3.5, 0.25, 10)`,
@@ -158,18 +157,27 @@ class Scenario(eqx.Module):
         self.headings = _as_float(headings)
         self.overhead_xy = _as_float(overhead_xy)
         self.overhead_heading = _as_float(overhead_heading)
-        self.overhead = paper_overhead_camera() if overhead is None else overhead
-        self.ptz = paper_ptz_camera() if ptz is None else ptz
-        self.omni2 = paper_omni_camera() if omni2 is None else omni2
-        self.omni3 = paper_omni_camera() if omni3 is None else omni3
+        if rig is None:
+            rig = Rig(
+                paper_overhead_camera() if overhead is None else overhead,
+                paper_ptz_camera() if ptz is None else ptz,
+                paper_omni_camera() if omni2 is None else omni2,
+                paper_omni_camera() if omni3 is None else omni3,
+                pixel_sigma=_as_float(pixel_sigma),
+                noise_model=noise_model,
+            )
+        elif any(x is not None for x in (overhead, ptz, omni2, omni3)):
+            raise ValueError(
+                "`Scenario(rig=...)` holds the cameras: give either `rig` or the cameras "
+                "(`overhead`, `ptz`, `omni2`, `omni3`), not both."
+            )
+        self.rig = rig
         self.move_mean = _as_float(move_mean)
         self.move_std = _as_float(move_std)
         self.min_separation = _as_float(min_separation)
-        self.pixel_sigma = _as_float(pixel_sigma)
         self.odometry_sigma_rel = _as_float(odometry_sigma_rel)
         self.strategy = strategy
         self.move_candidates = move_candidates
-        self.noise_model = noise_model
         self.require_overhead = require_overhead
         self.require_ptz = require_ptz
         self.require_omni = require_omni
@@ -183,18 +191,10 @@ class Scenario(eqx.Module):
         for name in ("ground", "ceiling"):
             if not isinstance(getattr(self, name), AbstractSurface):
                 bad(name, f"must be a surface; got {getattr(self, name)!r}.")
-        for name, cls in (
-            ("overhead", PinholeCamera),
-            ("ptz", PTZCamera),
-            ("omni2", OmniCamera),
-            ("omni3", OmniCamera),
-        ):
-            if not isinstance(getattr(self, name), cls):
-                bad(name, f"must be a {cls.__name__}; got {type(getattr(self, name)).__name__}.")
+        if not isinstance(self.rig, Rig):
+            bad("rig", f"must be a Rig; got {type(self.rig).__name__}.")
         if self.strategy not in STRATEGIES:
             bad("strategy", f"must be one of {STRATEGIES}; got {self.strategy!r}.")
-        if self.noise_model not in NOISE_MODELS:
-            bad("noise_model", f"must be one of {NOISE_MODELS}; got {self.noise_model!r}.")
         if (
             isinstance(self.move_candidates, bool)
             or not isinstance(self.move_candidates, int | np.integer)
@@ -207,7 +207,7 @@ class Scenario(eqx.Module):
         shapes = {"headings": (3,), "overhead_xy": (2,)}
         for name in (
             "base", "side", "headings", "overhead_xy", "overhead_heading", "move_mean",
-            "move_std", "min_separation", "pixel_sigma", "odometry_sigma_rel",
+            "move_std", "min_separation", "odometry_sigma_rel",
         ):  # fmt: skip
             x = getattr(self, name)
             shape = shapes.get(name, ())
@@ -222,7 +222,6 @@ class Scenario(eqx.Module):
             "move_mean": (lambda v: v > 0, "must be positive"),
             "move_std": (lambda v: v >= 0, "must be nonnegative"),
             "min_separation": (lambda v: v >= 0, "must be nonnegative"),
-            "pixel_sigma": (lambda v: v >= 0, "must be nonnegative"),
             "odometry_sigma_rel": (lambda v: v >= 0, "must be nonnegative"),
         }
         for name, (ok, msg) in checks.items():

@@ -272,15 +272,19 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
     d["ground"] = _surface_to_dict("ground", scenario.ground)
     d["ceiling"] = _surface_to_dict("ceiling", scenario.ceiling)
     for k in _FLOAT_KEYS:
+        if k == "pixel_sigma":
+            sigma = np.asarray(scenario.rig.pixel_sigma, dtype=np.float64)
+            d[k] = float(sigma[0]) if np.all(sigma == sigma[0]) else sigma.tolist()
+            continue
         d[k] = _to_builtin(getattr(scenario, k))
         if k == "side" and scenario.initial_xy is not None:
             d["initial_xy"] = _to_builtin(scenario.initial_xy)
         if k == "overhead_heading":
-            d["cameras"] = {s: _camera_to_dict(getattr(scenario, s)) for s in _CAMERA_SLOTS}
+            d["cameras"] = {s: _camera_to_dict(getattr(scenario.rig, s)) for s in _CAMERA_SLOTS}
         if k == "move_std" and scenario.moves is not None:
             d["moves"] = _to_builtin(scenario.moves)
     d["move_candidates"] = int(scenario.move_candidates)
-    d["noise_model"] = scenario.noise_model
+    d["noise_model"] = scenario.rig.noise_model
     for k in _BOOL_KEYS:
         d[k] = bool(getattr(scenario, k))
     return d

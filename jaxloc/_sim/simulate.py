@@ -8,9 +8,10 @@ noise -> `camera.unproject` -> back through the mount. It returns the ground tru
 [`jaxloc.CycleObservations`][] the estimators consume, and a feasibility flag.
 
 Frames: environment `E` (z up; see [`jaxloc.formation_xy`][]), robot body frames (x
-forward, y left, z up along the surface normal), camera frames through the mounts
-`R_BODY_PTZ`, `R_BODY_OMNI`, `R_BODY_OVERHEAD`, and the cycle's world frame `W` = C1's
-body frame at the start of the cycle (DESIGN §1).
+forward, y left, z up along the surface normal), camera frames through the rig's mounts
+(`scenario.rig`), and the cycle's world frame `W` = C1's body frame at the start of the
+cycle (DESIGN §1). Every sighting goes through the one projection path of
+`jaxloc._cycle.sightings` (marker offsets and camera offsets included).
 """
 
 import math
@@ -23,14 +24,10 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
-from .._cycle.observations import (
-    CycleObservations,
-    CyclePoses,
-    move_start_step,
-    moving_robot,
-    num_steps,
-)
+from .._cycle.layout import move_start_step, moving_robot, num_steps
+from .._cycle.observations import CycleObservations, CyclePoses, ODOMETRY_SIGMA_FLOOR
+from .._cycle.rig import ground_cameras_apply, Rig
+from .._cycle.sightings import in_body, marker_in_world, mutual_points
 from .scenario import Scenario
 from .world import body_frame_on_surface
 
@@ -66,17 +63,14 @@ class CycleTruth(eqx.Module):
 
 
 def noiseless(scenario: Scenario) -> Scenario:
-    """`scenario` with `pixel_sigma = 0` and `odometry_sigma_rel = 0` (same dtype): its
-    cycles' observations are exact (for exactness tests of the estimators)."""
+    """`scenario` with no pixel noise (`rig.pixel_sigma = 0`) and exact odometry
+    (`odometry_sigma_rel = 0`), same dtype: its cycles' observations are exact (for
+    exactness tests of the estimators)."""
     return eqx.tree_at(
-        lambda s: (s.pixel_sigma, s.odometry_sigma_rel),
+        lambda s: (s.rig.pixel_sigma, s.odometry_sigma_rel),
         scenario,
-        (jnp.zeros_like(scenario.pixel_sigma), jnp.zeros_like(scenario.odometry_sigma_rel)),
+        (jnp.zeros_like(scenario.rig.pixel_sigma), jnp.zeros_like(scenario.odometry_sigma_rel)),
     )
-
-
-def _mat(R: np.ndarray, dtype) -> Array:
-    return jnp.asarray(R, dtype=dtype)
 
 
 def _robot_frames(scenario: Scenario, xy: Float[Array, "*s 3 2"]):
@@ -85,67 +79,73 @@ def _robot_frames(scenario: Scenario, xy: Float[Array, "*s 3 2"]):
     return body_frame_on_surface(scenario.ground, xy, headings)
 
 
-def _relative_points(R: Float[Array, "*s 3 3 3"], p: Float[Array, "*s 3 3"]):
-    """`rel[..., i, j] = R_i^T (p_j - p_i)`: robot `j` in robot `i`'s body frame."""
-    d = p[..., None, :, :] - p[..., :, None, :]
-    return jnp.einsum("...iab,...ija->...ijb", R, d)
+def overhead_frames(scenario: Scenario, overhead_xy, overhead_heading, dtype):
+    """The climbing robot's body frame on the ceiling and its camera's optical frame,
+    `(R_climber, p_climber, R_overhead, p_overhead)` in `E` (through the rig's mount)."""
+    R_climber, p_climber = body_frame_on_surface(
+        scenario.ceiling, overhead_xy.astype(dtype), overhead_heading.astype(dtype)
+    )
+    R_m = scenario.rig.mount_rotations()[0].astype(dtype)
+    t_m = scenario.rig.mount_translations()[0].astype(dtype)
+    return R_climber, p_climber, R_climber @ R_m, p_climber + R_climber @ t_m
 
 
-def _omni_pair(scenario: Scenario):
-    """omni2 and omni3 stacked into one batched camera (one traced call for both, a
-    smaller program to compile), or `None` if their static configuration differs."""
-    a, b = scenario.omni2, scenario.omni3
-    if jax.tree.structure(a) != jax.tree.structure(b):
-        return None
-    return jax.tree.map(lambda x, y: jnp.stack([x, y]), a, b)
+def camera_points(scenario: Scenario, R, p, R_over, p_over):
+    """Every sighting of one or more formations in its camera's frame, through the rig's
+    mounts and markers (`jaxloc._cycle.sightings`): `(mutual (*s, 3, 3, 3), overhead
+    (*s, 3, 3))`, `mutual[..., i, j]` robot `j`'s marker in robot `i`'s camera (diagonal
+    a dummy point ahead), `overhead[..., j]` robot `j`'s marker in the overhead camera."""
+    rig = scenario.rig
+    dtype = p.dtype
+    markers = rig.markers[1:].astype(dtype)
+    mutual, _ = mutual_points(
+        R, p, rig.mount_rotations()[1:].astype(dtype), rig.mount_translations()[1:].astype(dtype),
+        markers,
+    )  # fmt: skip
+    return mutual, in_body(R_over, p_over, marker_in_world(R, p, markers))
 
 
-def _omni_call(scenario: Scenario, method: str, x: Array) -> Array:
-    """`omni2.<method>(x[..., 0, :, :])` and `omni3.<method>(x[..., 1, :, :])`, stacked
-    back on the same axis (`x`'s axis -3 holds the two omni observers)."""
-    pair = _omni_pair(scenario)
-    if pair is None:
-        out = [getattr(cam, method)(x[..., i, :, :]) for i, cam in
-               enumerate((scenario.omni2, scenario.omni3))]  # fmt: skip
-        return jnp.stack(out, axis=-3 if out[0].ndim == x.ndim - 1 else -2)
-    out = jax.vmap(lambda cam, v: getattr(cam, method)(v))(pair, jnp.moveaxis(x, -3, 0))
-    return jnp.moveaxis(out, 0, -3 if out.ndim == x.ndim else -2)
+def _observer_first(x):
+    """`(*s, 3 observers, 3, 3)` -> `(3 observers, *s, 3, 3)`."""
+    return jnp.moveaxis(x, -3, 0)
 
 
-def _visibility(scenario: Scenario, rel, p_over_cam):
-    """Required-visibility checks of one or more formations.
+def _observer_back(x, axis):
+    return jnp.moveaxis(x, 0, axis)
 
-    `rel`: `(*s, 3, 3, 3)` points of robot `j` in robot `i`'s body frame;
-    `p_over_cam`: `(*s, 3, 3)` robots in the overhead camera frame.
-    Returns `(ok (*s,), overhead_in_view (*s, 3), mutual_in_view (*s, 3, 3))`.
-    """
-    dtype = rel.dtype
-    over = scenario.overhead.in_view(p_over_cam)
-    ptz_pts = jnp.einsum("ab,...a->...b", _mat(R_BODY_PTZ, dtype), rel[..., 0, :, :])
-    omni_pts = jnp.einsum("ab,...a->...b", _mat(R_BODY_OMNI, dtype), rel)
-    ptz_vis = scenario.ptz.in_view(ptz_pts)[..., None, :]
-    omni_vis = _omni_call(scenario, "in_view", omni_pts[..., 1:, :, :])
-    mutual = jnp.concatenate([ptz_vis, omni_vis], axis=-2)
+
+def sightings_in_view(scenario: Scenario, mutual_cam, overhead_cam):
+    """Which sightings the cameras make, and whether the scenario's required ones exist.
+
+    **Arguments:** camera-frame points from [`camera_points`][]: `mutual_cam`
+    `(*s, 3, 3, 3)`, `overhead_cam` `(*s, 3, 3)`.
+
+    **Returns:** `(ok (*s,), overhead_in_view (*s, 3), mutual_in_view (*s, 3, 3))`:
+    `ok` holds the `require_*` checks (the overhead camera sees all three robots; C1's
+    camera sees C2 and C3; C2's and C3's see the two others)."""
+    rig = scenario.rig
+    over = rig.overhead.in_view(overhead_cam)
+    mutual = _observer_back(
+        ground_cameras_apply(rig, lambda cam, x: cam.in_view(x), _observer_first(mutual_cam)),
+        -2,
+    )
     off = jnp.broadcast_to(~np.eye(3, dtype=bool), mutual.shape)
-    ok = jnp.ones(rel.shape[:-3], dtype=bool)
+    ok = jnp.ones(mutual.shape[:-2], dtype=bool)
     if scenario.require_overhead:
         ok = ok & jnp.all(over, axis=-1)
     if scenario.require_ptz:
         ok = ok & jnp.all(mutual[..., 0, 1:], axis=-1)
     if scenario.require_omni:
         ok = ok & jnp.all(jnp.where(off[..., 1:, :], mutual[..., 1:, :], True), axis=(-2, -1))
-    mutual = mutual & off
-    return ok, over, mutual
+    return ok, over, mutual & off
 
 
-def _formations_ok(scenario: Scenario, xy, R_over, t_over):
+def _formations_ok(scenario: Scenario, xy, R_over, p_over):
     """Feasibility of formations `xy` `(n, 3, 2)`: required sightings and separation.
 
     Returns `(ok (n,), overhead_in_view (n, 3), mutual_in_view (n, 3, 3))`."""
     R, p = _robot_frames(scenario, xy)
-    rel = _relative_points(R, p)
-    p_over = jnp.einsum("ab,nja->njb", R_over, p - t_over[None, None, :])
-    ok, over, mutual = _visibility(scenario, rel, p_over)
+    ok, over, mutual = sightings_in_view(scenario, *camera_points(scenario, R, p, R_over, p_over))
     d = p[:, :, None, :] - p[:, None, :, :]
     dist2 = jnp.sum(d * d, axis=-1)
     sep = scenario.min_separation.astype(xy.dtype)
@@ -154,95 +154,32 @@ def _formations_ok(scenario: Scenario, xy, R_over, t_over):
     return ok, over, mutual
 
 
-def _pixel_noise(scenario: Scenario, key, shape, dtype):
-    sigma = scenario.pixel_sigma.astype(dtype)
-    if scenario.noise_model == "paper":
+def _pixel_noise(rig: Rig, sigma, key, shape, dtype):
+    """Pixel noise of shape `shape + (2,)` with scale `sigma` (px, broadcasting against
+    `shape`), under the rig's noise model."""
+    sigma = jnp.broadcast_to(jnp.asarray(sigma, dtype), shape)
+    if rig.noise_model == "paper":
         # Sec. IV.A: an error of N(0, 2) px "uniformly distributed in isotropic
         # directions": signed radius ~ N(0, sigma), direction ~ U[0, 2 pi).
         k_r, k_a = jr.split(key)
         r = sigma * jr.normal(k_r, shape, dtype)
         a = jr.uniform(k_a, shape, dtype, 0.0, 2.0 * math.pi)
         return jnp.stack([r * jnp.cos(a), r * jnp.sin(a)], axis=-1)
-    return sigma * jr.normal(key, shape + (2,), dtype)
+    return sigma[..., None] * jr.normal(key, shape + (2,), dtype)
 
 
 def _se3(R: Float[Array, "3 3"], p: Float[Array, "3"]) -> jaxlie.SE3:
     return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(R), p)
 
 
-def simulate_cycle(
-    scenario: Scenario, key: PRNGKeyArray
-) -> tuple[CycleTruth, CycleObservations, Bool[Array, ""]]:
-    r"""Simulate one localization cycle of `scenario`.
-
-    1. **Placement.** Ground robots at `scenario.formation_xy()` (`initial_xy` if
-       given, else [`jaxloc.formation_xy`][]`(base, side)`) on `scenario.ground` with
-       `scenario.headings`; the climbing robot at `overhead_xy`
-       on `scenario.ceiling` with `overhead_heading`; the overhead camera's optical
-       frame is its body pose composed with `R_BODY_OVERHEAD`. Every pose via
-       [`jaxloc.body_pose_on_surface`][].
-    2. **Moves** (DESIGN §3; order from `jaxloc._observations.moving_robot`): length
-       $L \sim N(\text{move\_mean}, \text{move\_std})$ clipped to >= 0.05 m, direction
-       uniform in the robot's tangent plane, $d = \cos\varphi\,x_b + \sin\varphi\,y_b$.
-       The end point is the surface point below/above `xy + L d_xy` (a straight
-       step in the tangent plane dropped onto the surface, not a geodesic: the
-       difference is a few millimetres at most on the paper's gently curved ground),
-       with the heading unchanged. Branch-free resampling: `move_candidates` candidates are drawn at
-       once for each step (for the concurrent strategy a candidate is a *pair* of moves
-       of C2 and C3), each is checked for the required sightings of the formation after
-       the step (`scenario.require_*`: the overhead camera sees all three robots; C1's
-       PTZ sees C2 and C3; each omni camera sees the two others within its elevation
-       band) and for `min_separation`, and the first feasible candidate is taken. If
-       none is feasible (or the initial formation is not), the first candidate is kept
-       and the returned flag is `False`. **Fixed moves** (`scenario.moves` given): move
-       `m` has exactly length `moves[m, 0]` and direction `moves[m, 1]` (no clipping, no
-       resampling); if a step's formation breaks a requirement the flag is `False`.
-    3. **Observations** through the cameras: the target robot's position (its marker
-       = its camera centre) in the observer's camera frame (PTZ base frame
-       `R_BODY_PTZ^T p_body`, omni frame = body frame, overhead optical frame),
-       `project`, pixel noise (`noise_model` "paper": radius ~ N(0, `pixel_sigma`),
-       uniform direction; "gaussian": N(0, `pixel_sigma`^2) per axis), `unproject`,
-       rotated back by the mount into the body frame (mutual) or kept in the overhead
-       camera's frame (overhead). Visibility decisions use the true points. Pixels of
-       sightings outside the camera's view, and of the diagonal `i == j`, are NaN; the
-       diagonal bearings are zero.
-    4. **Odometry**: the true straight-line distance between each move's start and end
-       positions times $(1 + \text{odometry\_sigma\_rel}\,N(0, 1))$;
-       `odometry_sigma = odometry_sigma_rel * measured`.
-
-    Pure, for one trial: batch with `jax.vmap(lambda k: simulate_cycle(scenario, k))`.
-    All randomness comes from `key` (split per purpose). Runs in the scenario's float
-    dtype (cast with [`jaxloc.astype`][] for float32).
-
-    **Arguments:**
-
-    - `scenario`: a [`jaxloc.Scenario`][].
-    - `key`: a JAX PRNG key.
-
-    **Returns:** `(truth, observations, all_visible)`: a [`jaxloc.CycleTruth`][], a
-    [`jaxloc.CycleObservations`][] (`strategy = scenario.strategy`), and a boolean
-    scalar, `True` iff every formation of the cycle satisfies the requirements (mark the
-    trial `RESULTS.not_visible` otherwise).
-    """
+def _draw_moves(scenario: Scenario, key, xy0, R_over, p_over, dtype):
+    """Every step's formation after the strategy's moves (branch-free resampling, or the
+    fixed moves), `(steps, 3, 2)`, whether every formation is feasible, and the sightings
+    in view at every step `(overhead (steps, 3), mutual (steps, 3, 3))`."""
     strategy = scenario.strategy
-    steps = num_steps(strategy)
-    movers = moving_robot(strategy)
-    starts = move_start_step(strategy)
-    dtype = jnp.result_type(scenario.base.dtype, scenario.side.dtype)
+    steps, movers, starts = num_steps(strategy), moving_robot(strategy), move_start_step(strategy)
     K = scenario.move_candidates
-    k_moves, k_mutual, k_over, k_odo = jr.split(key, 4)
-
-    # 1. Placement.
-    R_climber, t_over = body_frame_on_surface(
-        scenario.ceiling,
-        scenario.overhead_xy.astype(dtype),
-        scenario.overhead_heading.astype(dtype),
-    )
-    R_over = R_climber @ _mat(R_BODY_OVERHEAD, dtype)  # camera and body share the centre
-    xy0 = scenario.formation_xy().astype(dtype)
-
-    # 2. Moves. Which robots move at each step, (steps - 1, 3): one (sequential) or two
-    # (concurrent).
+    # Which robots move at each step, (steps - 1, 3): one (sequential) or two (concurrent).
     mover_mask = np.zeros((steps - 1, 3), dtype=bool)
     mover_mask[starts, movers] = True
     mean = scenario.move_mean.astype(dtype)
@@ -276,7 +213,7 @@ def simulate_cycle(
         # The current formation is checked too: that is the initial formation's check at
         # the first step, at the cost of one extra candidate.
         mask, over, mutual = _formations_ok(
-            scenario, jnp.concatenate([xy[None], cands]), R_over, t_over
+            scenario, jnp.concatenate([xy[None], cands]), R_over, p_over
         )
         best = 0 if fixed else jnp.argmax(mask[1:])
         xy = cands[best]
@@ -289,53 +226,62 @@ def simulate_cycle(
     (_, feasible), (xy_moved, vis) = jax.lax.scan(
         one_step,
         (xy0, jnp.array(True)),
-        (
-            jr.split(k_moves, steps - 1),
-            jnp.asarray(mover_mask),
-            jnp.asarray(first),
-            fixed_moves,
-        ),
+        (jr.split(key, steps - 1), jnp.asarray(mover_mask), jnp.asarray(first), fixed_moves),
     )
     xy_all = jnp.concatenate([xy0[None], xy_moved])  # (steps, 3, 2)
-    R_b, p_b = _robot_frames(scenario, xy_all)  # (steps, 3, 3, 3), (steps, 3, 3)
-
-    # 3. Observations.
-    rel = _relative_points(R_b, p_b)  # (steps, 3, 3, 3): robot j in robot i's body frame
-    p_over = jnp.einsum("ab,kja->kjb", R_over, p_b - t_over[None, None, :])
     over_vis = jnp.concatenate([vis[0][:1], vis[2]])  # (steps, 3)
     mutual_vis = jnp.concatenate([vis[1][:1], vis[3]])  # (steps, 3, 3)
-    eye = jnp.broadcast_to(np.eye(3, dtype=bool)[:, :, None], rel.shape)
-    # Dummy target (straight ahead) on the diagonal, masked below.
-    ahead = jnp.broadcast_to(jnp.array([1.0, 0.0, 0.0], dtype), rel.shape)
-    rel = jnp.where(eye, ahead, rel)
-    M_ptz = _mat(R_BODY_PTZ, dtype)
-    M_omni = _mat(R_BODY_OMNI, dtype)
-    k_ptz, k_omni = jr.split(k_mutual)
-    # PTZ: body -> base frame, project, noise, unproject (base-frame bearing), -> body.
-    uv_ptz = scenario.ptz.project(jnp.einsum("ab,...a->...b", M_ptz, rel[:, 0]))
-    uv_ptz = uv_ptz + _pixel_noise(scenario, k_ptz, uv_ptz.shape[:-1], dtype)
-    b_ptz = jnp.einsum("ab,...b->...a", M_ptz, scenario.ptz.unproject(uv_ptz))
-    # Omni cameras (C2, C3).
-    uv_omni = _omni_call(scenario, "project", jnp.einsum("ab,...a->...b", M_omni, rel[:, 1:]))
-    uv_omni = uv_omni + _pixel_noise(scenario, k_omni, uv_omni.shape[:-1], dtype)
-    b_omni = jnp.einsum("ab,...b->...a", M_omni, _omni_call(scenario, "unproject", uv_omni))
-    mutual = jnp.where(eye, 0.0, jnp.concatenate([b_ptz[:, None], b_omni], axis=1))
-    mutual_pixels = jnp.concatenate([uv_ptz[:, None], uv_omni], axis=1)
-    mutual_pixels = jnp.where(mutual_vis[..., None], mutual_pixels, jnp.nan)
-    over_uv = scenario.overhead.project(p_over)
-    over_uv = over_uv + _pixel_noise(scenario, k_over, over_uv.shape[:-1], dtype)
-    over_b = scenario.overhead.unproject(over_uv)
-    over_uv = jnp.where(over_vis[..., None], over_uv, jnp.nan)
+    return xy_all, feasible, over_vis, mutual_vis
 
-    # 4. Odometry.
+
+def _observe(scenario: Scenario, keys, mutual_cam, over_cam, mutual_vis, over_vis, dtype):
+    """Pixels and bearings of every sighting: project, add pixel noise, unproject, back
+    through the mount. Sightings not in view are NaN (missing), the diagonal zero."""
+    rig = scenario.rig
+    k_mutual, k_over = keys
+    sigma = rig.pixel_sigma.astype(dtype)
+    k_ptz, k_omni = jr.split(k_mutual)
+    uv = ground_cameras_apply(rig, lambda cam, x: cam.project(x), _observer_first(mutual_cam))
+    steps = uv.shape[1]
+    # Noise drawn for C1's camera, then for C2's and C3's together (the draws of one
+    # `(steps, 2, 3)` call: a seeded study's pixels do not depend on how the cameras
+    # are batched).
+    noise_ptz = _pixel_noise(rig, sigma[1], k_ptz, (steps, 3), dtype)
+    noise_omni = _pixel_noise(rig, sigma[2:, None], k_omni, (steps, 2, 3), dtype)
+    uv = uv + jnp.concatenate([noise_ptz[None], jnp.moveaxis(noise_omni, 1, 0)])
+    b_cam = ground_cameras_apply(rig, lambda cam, x: cam.unproject(x), uv)
+    mount_R = rig.mount_rotations()[1:].astype(dtype)
+    b_body = jnp.sum(mount_R[:, None, None] * b_cam[..., None, :], axis=-1)  # R_m b
+    mutual_pixels, mutual = _observer_back(uv, 1), _observer_back(b_body, 1)
+    eye = np.eye(3, dtype=bool)[None, :, :, None]
+    mutual = jnp.where(eye, 0.0, jnp.where(mutual_vis[..., None], mutual, jnp.nan))
+    mutual_pixels = jnp.where(mutual_vis[..., None], mutual_pixels, jnp.nan)
+    over_uv = rig.overhead.project(over_cam)
+    over_uv = over_uv + _pixel_noise(rig, sigma[0], k_over, over_uv.shape[:-1], dtype)
+    over_b = rig.overhead.unproject(over_uv)
+    over_b = jnp.where(over_vis[..., None], over_b, jnp.nan)
+    over_uv = jnp.where(over_vis[..., None], over_uv, jnp.nan)
+    return mutual, mutual_pixels, over_b, over_uv
+
+
+def _odometry(scenario: Scenario, key, p_b, dtype):
+    """True move distances between the movers' body origins, their noisy measurements
+    and the measurements' sigmas (a noise-free scenario reports a sigma of
+    `ODOMETRY_SIGMA_FLOOR` times the longest move: exact, but a valid observation)."""
+    starts, movers = move_start_step(scenario.strategy), moving_robot(scenario.strategy)
     dist = jnp.linalg.norm(p_b[starts + 1, movers] - p_b[starts, movers], axis=-1)
     rel_sigma = scenario.odometry_sigma_rel.astype(dtype)
-    measured = dist * (1.0 + rel_sigma * jr.normal(k_odo, dist.shape, dtype))
-    odometry_sigma = rel_sigma * measured
+    measured = dist * (1.0 + rel_sigma * jr.normal(key, dist.shape, dtype))
+    floor = ODOMETRY_SIGMA_FLOOR * jnp.max(jnp.abs(measured))
+    return dist, measured, jnp.maximum(rel_sigma * measured, floor)
 
-    # Truth in W = C1's body frame at the start. Composed as matrices, not with jaxlie's
-    # `@`, which promotes float32 to float64 under x64 (its `apply` pads with a default
-    # dtype zero).
+
+def _truth(R_b, p_b, frames, dist) -> CycleTruth:
+    """The cycle's true poses in `W` (C1's body frame at the start) and in `E`. Composed
+    as matrices, not with jaxlie's `@`, which promotes float32 to float64 under x64 (its
+    `apply` pads with a default dtype zero)."""
+    R_climber, p_climber, R_over, p_over = frames
+    steps = p_b.shape[0]
     R0, p0 = R_b[0, 0], p_b[0, 0]
     R_wb = jnp.einsum("ba,kibc->kiac", R0, R_b)
     p_wb = jnp.einsum("ba,kib->kia", R0, p_b - p0[None, None, :])
@@ -344,35 +290,102 @@ def simulate_cycle(
     Rs = jnp.concatenate(
         [R_wb.reshape(n, 3, 3), R_b.reshape(n, 3, 3), jnp.stack([R0.T @ R_over, R_climber, R_over])]
     )
-    ps = jnp.concatenate(
-        [p_wb.reshape(n, 3), p_b.reshape(n, 3), jnp.stack([R0.T @ (t_over - p0), t_over, t_over])]
-    )
+    p_special = jnp.stack([R0.T @ (p_over - p0), p_climber, p_over])
+    ps = jnp.concatenate([p_wb.reshape(n, 3), p_b.reshape(n, 3), p_special])
     T_all = jax.vmap(_se3)(Rs, ps)
 
     def part(i, shape=()):
         return jax.tree.map(lambda x: x[i].reshape(shape + x.shape[1:]), T_all)
 
-    T_world_body = part(slice(0, n), (steps, 3))
-    T_env_body = part(slice(n, 2 * n), (steps, 3))
     T_world_overhead, T_env_climber, T_env_overhead = part(2 * n), part(2 * n + 1), part(2 * n + 2)
-    T_env_world = part(n)  # C1 at step 0
-    poses = CyclePoses(T_world_body=T_world_body, T_world_overhead=T_world_overhead)
-    truth = CycleTruth(
+    poses = CyclePoses(part(slice(0, n), (steps, 3)), T_world_overhead)
+    return CycleTruth(
         poses=poses,
-        T_env_world=T_env_world,
-        T_env_body=T_env_body,
+        T_env_world=part(n),  # C1 at step 0
+        T_env_body=part(slice(n, 2 * n), (steps, 3)),
         T_env_overhead=T_env_overhead,
         T_env_climber=T_env_climber,
         move_distances=dist,
     )
+
+
+def simulate_cycle(
+    scenario: Scenario, key: PRNGKeyArray
+) -> tuple[CycleTruth, CycleObservations, Bool[Array, ""]]:
+    r"""Simulate one localization cycle of `scenario`.
+
+    1. **Placement.** Ground robots at `scenario.formation_xy()` (`initial_xy` if
+       given, else [`jaxloc.formation_xy`][]`(base, side)`) on `scenario.ground` with
+       `scenario.headings`; the climbing robot at `overhead_xy` on `scenario.ceiling`
+       with `overhead_heading`; the overhead camera's optical frame is its body pose
+       composed with the rig's mount of C. Every pose via
+       [`jaxloc.body_pose_on_surface`][].
+    2. **Moves** (DESIGN §3; order from `jaxloc._cycle.layout.moving_robot`): length
+       $L \sim N(\text{move\_mean}, \text{move\_std})$ clipped to >= 0.05 m, direction
+       uniform in the robot's tangent plane, $d = \cos\varphi\,x_b + \sin\varphi\,y_b$.
+       The end point is the surface point below/above `xy + L d_xy` (a straight step in
+       the tangent plane dropped onto the surface, not a geodesic: the difference is a
+       few millimetres at most on the paper's gently curved ground), with the heading
+       unchanged. Branch-free resampling: `move_candidates` candidates are drawn at once
+       for each step (for the concurrent strategy a candidate is a *pair* of moves of C2
+       and C3), each is checked for the required sightings of the formation after the
+       step (`scenario.require_*`: the overhead camera sees all three robots; C1's PTZ
+       sees C2 and C3; each omni camera sees the two others within its elevation band)
+       and for `min_separation`, and the first feasible candidate is taken. If none is
+       feasible (or the initial formation is not), the first candidate is kept and the
+       returned flag is `False`. **Fixed moves** (`scenario.moves` given): move `m` has
+       exactly length `moves[m, 0]` and direction `moves[m, 1]` (no clipping, no
+       resampling); if a step's formation breaks a requirement the flag is `False`.
+    3. **Observations** through the rig (`scenario.rig`): the target robot's marker in
+       the observer's camera frame, through its mount (`jaxloc._cycle.sightings`),
+       `project`, pixel noise of the camera's `pixel_sigma` (`noise_model` "paper":
+       radius ~ N(0, sigma), uniform direction; "gaussian": N(0, sigma^2) per axis),
+       `unproject`, rotated back by the mount into the body frame (mutual) or kept in
+       the overhead camera's frame (overhead). Visibility decisions use the true points.
+       A sighting outside its camera's view is missing: NaN pixels and NaN bearings
+       (`overhead_visible` False for the overhead camera); the diagonal `i == j` has
+       NaN pixels and zero bearings.
+    4. **Odometry**: the true straight-line distance between each move's start and end
+       body origins times $(1 + \text{odometry\_sigma\_rel}\,N(0, 1))$;
+       `odometry_sigma = odometry_sigma_rel * measured` (at least 1e-6 of the longest
+       move: exact odometry of a noise-free scenario is still a valid observation).
+
+    Pure, for one trial: batch with `jax.vmap(lambda k: simulate_cycle(scenario, k))`.
+    All randomness comes from `key` (split per purpose). Runs in the scenario's float
+    dtype (cast with [`jaxloc.astype`][] for float32).
+
+    **Arguments:**
+
+    - `scenario`: a [`jaxloc.Scenario`][].
+    - `key`: a JAX PRNG key.
+
+    **Returns:** `(truth, observations, all_visible)`: a [`jaxloc.CycleTruth`][], a
+    [`jaxloc.CycleObservations`][] (`strategy = scenario.strategy`), and a boolean
+    scalar, `True` iff every formation of the cycle satisfies the requirements (mark the
+    trial `RESULTS.not_visible` otherwise).
+    """
+    dtype = jnp.result_type(scenario.base.dtype, scenario.side.dtype)
+    k_moves, k_mutual, k_over, k_odo = jr.split(key, 4)
+    frames = overhead_frames(scenario, scenario.overhead_xy, scenario.overhead_heading, dtype)
+    _, _, R_over, p_over = frames
+    xy0 = scenario.formation_xy().astype(dtype)
+    xy_all, feasible, over_vis, mutual_vis = _draw_moves(
+        scenario, k_moves, xy0, R_over, p_over, dtype
+    )
+    R_b, p_b = _robot_frames(scenario, xy_all)  # (steps, 3, 3, 3), (steps, 3, 3)
+    mutual_cam, over_cam = camera_points(scenario, R_b, p_b, R_over, p_over)
+    mutual, mutual_pixels, over_b, over_uv = _observe(
+        scenario, (k_mutual, k_over), mutual_cam, over_cam, mutual_vis, over_vis, dtype
+    )
+    dist, measured, odometry_sigma = _odometry(scenario, k_odo, p_b, dtype)
     obs = CycleObservations(
         mutual=mutual,
         overhead=over_b,
         odometry=measured,
         odometry_sigma=odometry_sigma,
-        strategy=strategy,
+        strategy=scenario.strategy,
         overhead_visible=over_vis,
         mutual_pixels=mutual_pixels,
         overhead_pixels=over_uv,
     )
-    return truth, obs, feasible
+    return _truth(R_b, p_b, frames, dist), obs, feasible

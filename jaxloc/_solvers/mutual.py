@@ -22,8 +22,9 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._core.numerics import safe_norm, safe_normalize
+from .._core.numerics import as_floating, safe_norm, safe_normalize
 from .._core.results import raise_if_failed, RESULTS
+from .._cycle.layout import other_robots
 
 
 _DEFAULT_MIN_ANGLE = 0.5 * jnp.pi / 180.0
@@ -53,10 +54,6 @@ def _angle(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
     return jnp.arctan2(safe_norm(jnp.cross(a, b)), jnp.dot(a, b))
 
 
-def _others(ref: int) -> tuple[int, int]:
-    return tuple(i for i in range(3) if i != ref)  # pyright: ignore[reportReturnType]
-
-
 def mutual_localization(
     bearings: Float[Array, "3 3 3"],
     ref: int = 0,
@@ -80,11 +77,11 @@ def mutual_localization(
     **Returns:** a [`jaxloc.MutualSolution`][], translations up to one common scale
     (circumdiameter 1).
     """
-    bearings = jnp.asarray(bearings)
+    bearings = as_floating(bearings)
     if bearings.shape != (3, 3, 3):
         raise ValueError(f"`bearings` must have shape (3, 3, 3); got {bearings.shape}.")
-    if ref not in (0, 1, 2):
-        raise ValueError(f"`ref` must be 0, 1 or 2; got {ref!r}.")
+    if isinstance(ref, bool) or ref not in (0, 1, 2):
+        raise ValueError(f"`ref` must be the index of a robot: 0, 1 or 2; got {ref!r}.")
 
     off_diagonal = ~np.eye(3, dtype=bool)
     finite = jnp.all(jnp.isfinite(bearings) | ~off_diagonal[:, :, None])
@@ -102,7 +99,7 @@ def mutual_localization(
     def side(a: int, b: int) -> Array:
         return sin_psi[3 - a - b]
 
-    j, k = _others(ref)
+    j, k = other_robots(ref)
     p = {ref: jnp.zeros(3, dtype=u.dtype), j: side(ref, j) * u[ref, j], k: side(ref, k) * u[ref, k]}
     R = {ref: jnp.eye(3, dtype=u.dtype)}
     for m in (j, k):
@@ -116,6 +113,8 @@ def mutual_localization(
     T_ref_body = jax.vmap(
         lambda Rm, t: jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(Rm), t)
     )(rotations, translations)
+    # jaxlie computes some constants in the default float: keep the input's dtype.
+    T_ref_body = jaxlie.SE3(T_ref_body.wxyz_xyz.astype(u.dtype))
 
     result = RESULTS.where(degenerate, RESULTS.degenerate_configuration, RESULTS.successful)
     result = RESULTS.where(finite, result, RESULTS.nonfinite_observation)
@@ -151,3 +150,18 @@ def _nominal_bearings(dtype) -> Float[Array, "3 3 3"]:
     diff = pts[None, :, :] - pts[:, None, :]
     diff = diff + jnp.eye(3, dtype=dtype)[:, :, None]
     return diff
+
+
+def mutual_steps(bearings: Float[Array, "steps 3 3 3"], refs: tuple[int, ...]):
+    """[`jaxloc.mutual_localization`][] of every step, as one `vmap` (traced and compiled
+    once, not once per step), step `k` with reference robot `refs[k]`. Each step's robots
+    are reordered so that its reference robot comes first, then put back: the poses are
+    the same numbers in any order (each angle, side and rotation involves the same
+    robots). Returns one [`jaxloc.MutualSolution`][] per step."""
+    perms = np.array([(r, *other_robots(r)) for r in refs])
+    steps = np.arange(len(refs))
+    permuted = bearings[steps[:, None, None], perms[:, :, None], perms[:, None, :]]
+    sols = jax.vmap(lambda b: mutual_localization(b, 0, throw=False))(permuted)
+    T = sols.T_ref_body.wxyz_xyz[steps[:, None], np.argsort(perms, axis=1)]
+    sols = eqx.tree_at(lambda sol: sol.T_ref_body, sols, jaxlie.SE3(T))
+    return [jax.tree.map(lambda x, k=k: x[k], sols) for k in steps]

@@ -4,10 +4,9 @@ The public entry point is [`jaxloc.solve_overhead_pose`][]. Its default method i
 the coplanar / near-planar floors where the paper's Eq. 6 is rank deficient: it runs a
 branch-free Lambda Twist P3P on the best-conditioned point triplets, scores every candidate
 on all points by angular error, keeps the best, and polishes it with jaxloc's
-Levenberg--Marquardt on the chordal bearing error (chain-rule Jacobian, implicit
-derivatives). No `jnp.linalg` on that path, and no gathers or batched `dot`s of tiny
-matrices (DESIGN §8). [`map_problems`][] batches any single-problem function over the host
-devices in cache-sized `vmap` steps.
+Levenberg--Marquardt (`jaxloc._core.least_squares`) on the chordal bearing error
+(chain-rule Jacobian, implicit derivatives). No `jnp.linalg` on that path, and no gathers
+or batched `dot`s of tiny matrices (DESIGN §8).
 """
 
 import functools as ft
@@ -20,24 +19,22 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._core.least_squares import (
-    _cholesky_solve6 as _cholesky_solve6,  # its old home; now in _normal_equations
-    _implicit_pose_step,
-    _pose_lm,
-    _rplus,
-)
+from .._core.least_squares import implicit_step, levenberg_marquardt
+from .._core.numerics import safe_normalize
+from .._core.poses import apply, inverse, rplus, rplus_params
 from .._core.results import raise_if_failed, RESULTS
-from .dlt import (
+from .._cycle.sightings import matmul, matvec, skew
+from .dlt import paper_linear_pose
+from .p3p import p3p
+from .pose_problem import (
     angular_errors,
     check_inputs,
     identity_like,
-    paper_linear_pose,
     point_spread,
     PoseSolution,
     rms,
     where_pose,
 )
-from .p3p import p3p
 
 
 #: Triplets solved by P3P (the best-conditioned ones), and the polish's iteration limit.
@@ -46,42 +43,19 @@ _POLISH_STEPS = 5
 # A candidate is another minimum (the robust solver's runner-up) when its camera centre
 # is farther from the winner's than this fraction of the RMS camera-to-point distance.
 _DISTINCT_CENTRE = 0.3
+#: Number of alternatives a robust solution carries (the other roots of one P3P).
+NUM_ALTERNATIVES = 3
 
 
-def _normalize_rows(v: Float[Array, "n 3"]) -> Float[Array, "n 3"]:
-    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
-    ok = n2 > 0
-    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
-
-
-def _chordal_residuals(
-    pose: jaxlie.SE3, X: Float[Array, "n 3"], b: Float[Array, "n 3"], w: Float[Array, " n"]
-) -> Float[Array, " 3n"]:
-    """`w_i (q_i / |q_i| - b_i)`, q_i = pose @ X_i; |.|^2 = 2 (1 - cos angle) ~ angle^2."""
-    q = jax.vmap(pose.apply)(X)
-    return (w[:, None] * (_normalize_rows(q) - b)).reshape(-1)
-
-
-def rotation_block(A: Float[Array, "n m 3"], X: Float[Array, "n 3"]) -> Float[Array, "n m 3"]:
-    """Jacobian block of a right perturbation's rotation `omega` from the translation block
-    `A = d r / d v`: `d r / d omega = A [e_k x X]_k` for world points `X`, element-wise."""
-    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
-    zero = jnp.zeros_like(x0)
-    cross = jnp.stack(
-        [jnp.stack([zero, -x2, x1], -1), jnp.stack([x2, zero, -x0], -1),
-         jnp.stack([-x1, x0, zero], -1)],
-        axis=-1,
-    )  # [i, j, k] = (e_k x X_i)_j
-    return jnp.sum(A[:, :, :, None] * cross[:, None, :, :], axis=2)
-
-
-def _chordal_model(T: jaxlie.SE3, X, b, w):
-    r"""Chordal residuals `(3n,)` and their Jacobian `(3n, 6)` w.r.t. the right
-    perturbation `T exp(delta)` at `delta = 0`, by the chain rule, element-wise:
-    `q = R X + t`, `d(q/|q|)/dq = (I - n n^T) / |q|`, `dq/dv = R`,
-    `dq/d omega_k = R (e_k x X)`."""
+def _chordal_model(params, X, b, w):
+    r"""Chordal bearing residuals `w_i (q_i / |q_i| - b_i)` `(3n,)`, `q = R X + t` with `T =
+    (R, t)` = `T_cam_world` (their squared norm is `2 (1 - cos angle)`, about the squared
+    angle), and their Jacobian `(3n, 6)` with respect to the right perturbation
+    `T exp(delta)`, by the chain rule: `d(q/|q|)/dq = (I - u u^T) / |q|` and
+    `dq/d delta = R [I, -[X]x]`."""
+    T = jaxlie.SE3(params)
     R = T.rotation().as_matrix()
-    q = jnp.sum(X[:, None, :] * R[None, :, :], axis=-1) + T.translation()[None]
+    q = matvec(R[None], X) + T.translation()[None]
     n2 = jnp.sum(q * q, axis=-1)
     ok = n2 > 0
     inv = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, n2, 1.0)), 0.0)
@@ -90,52 +64,65 @@ def _chordal_model(T: jaxlie.SE3, X, b, w):
     eye = jnp.eye(3, dtype=X.dtype)
     D = (w * inv)[:, None, None] * (eye[None] - u[:, :, None] * u[:, None, :])
     A = jnp.sum(D[:, :, :, None] * R[None, None, :, :], axis=2)  # d r / d v, (n, 3, 3)
-    Jw = rotation_block(A, X)
+    Jw = -matmul(A, skew(X))
     return r.reshape(-1), jnp.concatenate([A, Jw], axis=-1).reshape(-1, 6)
 
 
-def _chordal_implicit(T, args, static):
+def _chordal_residuals(params, delta, args, static):
     del static
     X, b, w = args
-    return _chordal_residuals(T, X, b, w)
+    T = rplus(jaxlie.SE3(params), delta)
+    q = jax.vmap(ft.partial(apply, T))(X)
+    return (w[:, None] * (safe_normalize(q) - b)).reshape(-1)
 
 
 def _polish(pose: jaxlie.SE3, X, b, w, steps: int) -> jaxlie.SE3:
-    """Minimise the chordal bearing error from `pose`: jaxloc's Levenberg--Marquardt with
-    the chain-rule Jacobian (at most `steps` iterations), not differentiated; derivatives
-    of the minimizer w.r.t. `X` and `b` by the implicit function theorem."""
+    """Minimise the chordal bearing error from `pose`: the least-squares kernel with the
+    chain-rule Jacobian (at most `steps` iterations), not differentiated; derivatives of
+    the minimizer w.r.t. `X` and `b` by the implicit function theorem."""
     dtype = X.dtype
     tol = max(1e-8, 100.0 * float(jnp.finfo(dtype).eps))
     stop = jax.lax.stop_gradient
     Xs, bs, ws = stop(X), stop(b), stop(w)
-    # Residuals are in rad (~1e-3 at 2 px): start with a damping well below J^T J.
-    pose, _, _ = _pose_lm(
-        lambda T: _chordal_model(T, Xs, bs, ws),
-        jaxlie.SE3(stop(pose.wxyz_xyz)),
-        damped=True,
+    # Residuals are in rad (~1e-3 at 2 px), not whitened: a damping well below J^T J, and
+    # the step test alone.
+    out = levenberg_marquardt(
+        lambda x: _chordal_model(x, Xs, bs, ws),
+        rplus_params,
+        lambda x: jnp.max(jnp.abs(x[4:])),
+        stop(pose.wxyz_xyz),
+        num_residuals=3 * X.shape[0],
+        num_unknowns=6,
         max_steps=steps,
         rtol=tol,
         atol=tol,
-        active=jnp.array(True),
         lam0=1e-9,
+        final_gauss_newton=True,
     )
-    step = _implicit_pose_step(_chordal_implicit, None, pose.wxyz_xyz, (X, b, w))
-    return _rplus(pose, step, dtype)
+    step = implicit_step(_chordal_residuals, 6, None, out.x, (X, b, w))
+    return rplus(jaxlie.SE3(out.x), step)
 
 
-def _select_triplets(Xt, bt, tri_ok, k: int):
-    """One-hot weights `(k, T)` of the `k` best-conditioned usable triplets: largest
-    product of the bearing triangle's squared area and the world triangle's squared
-    relative area (area over longest edge squared). Repeated arg-max, no sort."""
-    c = jnp.cross(bt[:, 1] - bt[:, 0], bt[:, 2] - bt[:, 0])
+def _collinearity_free(Xt, eps):
+    """Which triplets `(T, 3, 3)` are not (nearly) collinear: twice the area over the
+    longest squared edge (scale free, ~eps for exactly collinear points)."""
     e1 = Xt[:, 1] - Xt[:, 0]
     e2 = Xt[:, 2] - Xt[:, 0]
     e3 = Xt[:, 2] - Xt[:, 1]
-    cw = jnp.cross(e1, e2)
+    cr = jnp.cross(e1, e2)
+    area2 = jnp.sum(cr * cr, axis=-1)
     longest = jnp.maximum(
         jnp.maximum(jnp.sum(e1 * e1, axis=-1), jnp.sum(e2 * e2, axis=-1)),
         jnp.sum(e3 * e3, axis=-1),
     )
+    return area2 > (1e-2 * jnp.sqrt(eps) * longest) ** 2, cr, longest
+
+
+def _select_triplets(Xt, bt, tri_ok, cw, longest, k: int):
+    """One-hot weights `(k, T)` of the `k` best-conditioned usable triplets: largest
+    product of the bearing triangle's squared area and the world triangle's squared
+    relative area (area over longest edge squared). Repeated arg-max, no sort."""
+    c = jnp.cross(bt[:, 1] - bt[:, 0], bt[:, 2] - bt[:, 0])
     rel = jnp.sum(cw * cw, axis=-1) / jnp.where(longest > 0, longest, 1.0) ** 2
     score = jnp.where(tri_ok, jnp.sum(c * c, axis=-1) * rel, -1.0)
     idx = jnp.arange(score.shape[0])
@@ -147,112 +134,121 @@ def _select_triplets(Xt, bt, tri_ok, k: int):
     return jnp.stack(hots)
 
 
-def _runner_up(params, costs, best, Xs, w, success, dtype) -> dict:
-    """The robust solver's runner-up: the best candidate whose camera centre is far from
-    the winner's (another local minimum, e.g. the mirror pose of nearly coplanar points),
-    as `{"runner_up_pose": (7,), "runner_up_ok": ()}` (identity and False if none)."""
-    centres = jax.vmap(lambda p: jaxlie.SE3(p).inverse().translation())(params)
+def _candidates(X, b, use, eps):
+    """P3P on the best-conditioned triplets of the usable points, without gradients (the
+    polish carries them): candidate poses `(4k, 7)`, which are valid, and whether any
+    triplet was usable. One-hot picks: no gather."""
+    n = X.shape[0]
+    tri = np.array(list(itertools.combinations(range(n), 3)), dtype=np.int32)
+    Xs, bs = jax.lax.stop_gradient(X), jax.lax.stop_gradient(b)
+    Xt, bt = Xs[tri], bs[tri]
+    noncollinear, cw, longest = _collinearity_free(Xt, eps)
+    tri_ok = jnp.all(use[tri], axis=1) & noncollinear
+    k = min(_NUM_TRIPLETS, tri.shape[0])
+    hot = _select_triplets(Xt, bt, tri_ok, cw, longest, k).astype(X.dtype)
+    Xk = jnp.sum(hot[:, :, None, None] * Xt[None], axis=1)
+    bk = jnp.sum(hot[:, :, None, None] * bt[None], axis=1)
+    okk = jnp.sum(hot * tri_ok.astype(X.dtype)[None], axis=1) > 0
+    sols = jax.vmap(p3p)(Xk, bk)
+    params = sols.poses.wxyz_xyz.reshape(-1, 7)
+    return params, (sols.valid & okk[:, None]).reshape(-1), jnp.any(tri_ok)
+
+
+def _score(params, X, b, w, use):
+    """Sum of squared chordal bearing errors of each candidate on every usable point, and
+    whether it puts every usable point in front of the camera."""
+
+    def one(p):
+        T = jaxlie.SE3(wxyz_xyz=p)
+        R = T.rotation().as_matrix()
+        q = matvec(R[None], X) + T.translation()[None]
+        chord2 = jnp.sum((safe_normalize(q) - b) ** 2, axis=-1)
+        in_front = jnp.sum(q * b, axis=-1) > 0
+        return jnp.sum(w * chord2), jnp.all(in_front | ~use)
+
+    return jax.vmap(one)(jax.lax.stop_gradient(params))
+
+
+def _runner_up(params, costs, best, X, w, success):
+    """The best candidate whose camera centre is far from the winner's (another local
+    minimum, e.g. the mirror pose of nearly coplanar points): `(params (7,), ok)`."""
+    Xs = jax.lax.stop_gradient(X)
+    centres = jax.vmap(lambda p: inverse(jaxlie.SE3(p)).translation())(params)
     best_centre = jnp.sum(jnp.where(best[:, None], centres, 0.0), axis=0)
     depth2 = jnp.sum(w * jnp.sum((Xs - best_centre[None]) ** 2, -1)) / jnp.maximum(jnp.sum(w), 1)
     far = jnp.sum((centres - best_centre[None]) ** 2, -1) > _DISTINCT_CENTRE**2 * depth2
     other_costs = jnp.where(far, costs, jnp.inf)
     other = jnp.arange(costs.shape[0]) == jnp.argmin(other_costs)
     runner_up = jnp.sum(jnp.where(other[:, None], params, 0.0), axis=0)
-    runner_up_ok = jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(runner_up))
-    ok = success & runner_up_ok
-    return {
-        "runner_up_pose": jnp.where(ok, runner_up, identity_like(dtype).wxyz_xyz),
-        "runner_up_ok": ok,
-    }
+    ok = success & jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(runner_up))
+    return jnp.where(ok, runner_up, identity_like(params.dtype).wxyz_xyz), ok
+
+
+def _other_roots(params, good, best):
+    """The valid candidates of the best triplet other than the winner, `(3, 7)` and their
+    flags: with exactly three usable points, the P3P roots the points cannot tell apart."""
+    first = params[:4]
+    others = good[:4] & ~best[:4]
+    # Compact the (up to three) other roots to the front, keeping their order.
+    order = jnp.argsort(~others, stable=True)[:NUM_ALTERNATIVES]
+    ok = others[order]
+    ident = identity_like(params.dtype).wxyz_xyz
+    return jnp.where(ok[:, None], first[order], ident[None]), ok
+
+
+def _status(nonfinite, count, any_triplet, num_valid, pose, ambiguous):
+    """The robust solver's status, by priority."""
+    result = RESULTS.where(
+        (num_valid > 0) & jnp.all(jnp.isfinite(pose.wxyz_xyz)),
+        RESULTS.where(ambiguous, RESULTS.ambiguous, RESULTS.successful),
+        RESULTS.no_valid_solution,
+    )
+    result = RESULTS.where(any_triplet, result, RESULTS.degenerate_configuration)
+    result = RESULTS.where(count < 3, RESULTS.too_few_points, result)
+    return RESULTS.where(nonfinite, RESULTS.nonfinite_observation, result)
 
 
 @ft.partial(jax.jit, static_argnames="runner_up", inline=True)
 def _robust_pose(X, bw, mask, runner_up: bool = False) -> PoseSolution:
     dtype = X.dtype
     eps = jnp.finfo(dtype).eps
-    n = X.shape[0]
     finite = jnp.all(jnp.isfinite(X), axis=1) & jnp.all(jnp.isfinite(bw), axis=1)
     nonfinite = jnp.any(mask & ~finite)
     use = mask & finite
     X = jnp.where(use[:, None], X, 0.0)
-    b = _normalize_rows(jnp.where(use[:, None], bw, jnp.array([[0.0, 0.0, 1.0]], dtype=dtype)))
+    b = safe_normalize(jnp.where(use[:, None], bw, jnp.array([[0.0, 0.0, 1.0]], dtype=dtype)))
     b = jnp.where(use[:, None], b, jnp.array([[0.0, 0.0, 1.0]], dtype=dtype))
     w = use.astype(dtype)
-
-    # All C(n, 3) triplets, enumerated at trace time.
-    tri = np.array(list(itertools.combinations(range(n), 3)), dtype=np.int32)
-    Xs, bs = jax.lax.stop_gradient(X), jax.lax.stop_gradient(b)
-    Xt, bt = Xs[tri], bs[tri]
-    # Skip triplets with masked points or (nearly) collinear points: twice the area over
-    # the longest squared edge (scale free, ~eps for exactly collinear points).
-    e1 = Xt[:, 1] - Xt[:, 0]
-    e2 = Xt[:, 2] - Xt[:, 0]
-    e3 = Xt[:, 2] - Xt[:, 1]
-    cr = jnp.cross(e1, e2)
-    area2 = jnp.sum(cr * cr, axis=-1)
-    longest = jnp.maximum(
-        jnp.maximum(jnp.sum(e1 * e1, axis=-1), jnp.sum(e2 * e2, axis=-1)),
-        jnp.sum(e3 * e3, axis=-1),
-    )
-    thr = 1e-2 * jnp.sqrt(eps)
-    noncollinear = area2 > (thr * longest) ** 2
-    tri_ok = jnp.all(use[tri], axis=1) & noncollinear
-    # P3P on the best-conditioned triplets only (one-hot picks: no gather), without
-    # gradients: the polish below carries the derivatives (implicit function theorem).
-    k = min(_NUM_TRIPLETS, tri.shape[0])
-    hot = _select_triplets(Xt, bt, tri_ok, k).astype(dtype)
-    Xk = jnp.sum(hot[:, :, None, None] * Xt[None], axis=1)
-    bk = jnp.sum(hot[:, :, None, None] * bt[None], axis=1)
-    okk = jnp.sum(hot * tri_ok.astype(dtype)[None], axis=1) > 0
-    sols = jax.vmap(p3p)(Xk, bk)
-    params = sols.poses.wxyz_xyz.reshape(-1, 7)
-    cand_ok = (sols.valid & okk[:, None]).reshape(-1)
-
-    def score(p):
-        T = jaxlie.SE3(wxyz_xyz=p)
-        R = T.rotation().as_matrix()
-        q = jnp.sum(Xs[:, None, :] * R[None, :, :], axis=-1) + T.translation()[None]
-        chord2 = jnp.sum((_normalize_rows(q) - bs) ** 2, axis=-1)
-        in_front = jnp.sum(q * bs, axis=-1) > 0
-        return jnp.sum(w * chord2), jnp.all(in_front | ~use)
-
-    costs, front_ok = jax.vmap(score)(params)
+    params, cand_ok, any_triplet = _candidates(X, b, use, eps)
+    costs, front_ok = _score(params, jax.lax.stop_gradient(X), jax.lax.stop_gradient(b), w, use)
     good = cand_ok & front_ok & jnp.isfinite(costs)
     costs = jnp.where(good, costs, jnp.inf)
     best = jnp.arange(costs.shape[0]) == jnp.argmin(costs)
     num_valid = jnp.sum(good).astype(jnp.int32)
     start = jnp.sum(jnp.where(best[:, None], params, 0.0), axis=0)
     pose = _polish(jaxlie.SE3(start), X, b, w, _POLISH_STEPS)
-    planarity, collinearity = point_spread(X, use)
     count = jnp.sum(use)
-    result = RESULTS.where(
-        nonfinite,
-        RESULTS.nonfinite_observation,
-        RESULTS.where(
-            count < 3,
-            RESULTS.too_few_points,
-            RESULTS.where(
-                ~jnp.any(tri_ok),
-                RESULTS.degenerate_configuration,
-                RESULTS.where(
-                    (num_valid > 0) & jnp.all(jnp.isfinite(pose.wxyz_xyz)),
-                    RESULTS.successful,
-                    RESULTS.no_valid_solution,
-                ),
-            ),
-        ),
-    )
-    success = result == RESULTS.successful
+    roots, roots_ok = _other_roots(params, good, best)
+    three_points = count == 3
+    ambiguous = three_points & jnp.any(roots_ok)
+    result = _status(nonfinite, count, any_triplet, num_valid, pose, ambiguous)
+    success = (result == RESULTS.successful) | (result == RESULTS.ambiguous)
     pose = where_pose(success, pose, identity_like(dtype))
+    if runner_up:
+        second, second_ok = _runner_up(params, costs, best, X, w, success)
+        roots = jnp.where(three_points, roots, roots.at[0].set(second))
+        roots_ok = jnp.where(three_points, roots_ok, roots_ok.at[0].set(second_ok))
+    else:
+        roots_ok = roots_ok & three_points
+    roots_ok = roots_ok & success
+    planarity, collinearity = point_spread(X, use)
     stats = {
         "planarity": planarity,
         "collinearity": collinearity,
         "num_valid_candidates": num_valid,
         "rms_angular_error": rms(angular_errors(pose, X, b), use),
     }
-    if runner_up:
-        stats.update(_runner_up(params, costs, best, Xs, w, success, dtype))
-    return PoseSolution(pose=pose, result=result, stats=stats)
+    return PoseSolution(pose, result, stats, jaxlie.SE3(roots), roots_ok)
 
 
 def solve_overhead_pose(
@@ -294,11 +290,13 @@ def solve_overhead_pose(
         [`jaxloc.PoseSolution`][] and the sanitized inputs (`mask` a boolean `(n,)` array),
         it must return a `PoseSolution`. Called before `throw` is applied.
     - `runner_up`: keyword only, `"robust"` only. Also return the best candidate far
-        from the solution (`stats["runner_up_pose"]`, `stats["runner_up_ok"]`): another
-        local minimum, e.g. the mirror pose of nearly coplanar points, for a multi-start
+        from the solution (`alternatives[0]`, `alternatives_ok[0]`): another local
+        minimum, e.g. the mirror pose of nearly coplanar points, for a multi-start
         refinement (the concurrent strategy uses it).
 
-    **Returns:** a [`jaxloc.PoseSolution`][]. `result` is `successful`,
+    **Returns:** a [`jaxloc.PoseSolution`][]. `result` is `successful`, `ambiguous` (exactly
+    three usable points and several P3P roots in front of the camera: three points do
+    not decide; the best-scoring root is `pose`, the others are in `alternatives`),
     `nonfinite_observation` (NaN/inf in an unmasked input), `too_few_points` (fewer than 3
     unmasked points; 6 for `"paper"`), `degenerate_configuration` (collinear points),
     `no_valid_solution` (no candidate of the solved triplets puts every point in front),
@@ -330,56 +328,3 @@ def solve_overhead_pose(
     return raise_if_failed(sol, sol.result, throw)
 
 
-def map_problems(fn: Callable, *, batch_size: int = 128, devices=None) -> Callable:
-    r"""Batch a single-problem function the fast way on CPU: shard the problems over the
-    host devices and walk each device's share in `lax.map` steps of `batch_size` problems
-    `vmap`-ed together.
-
-    `jax.jit(jax.vmap(fn))` runs every problem on one core, and an iterative solver's whole
-    batch waits for its slowest problem; small `vmap`-ed steps keep the working set in
-    cache and let each step stop with its own slowest problem (DESIGN §8: ~2x for
-    element-wise kernels), and `shard_map` over the devices uses every core that XLA
-    exposes (set `XLA_FLAGS=--xla_force_host_platform_device_count=N` before JAX starts
-    for N CPU devices).
-
-    **Arguments:**
-
-    - `fn`: a function of one problem, `fn(*args) -> pytree of arrays` (e.g. a wrapper
-        around [`jaxloc.solve_overhead_pose`][] and [`jaxloc.refine_overhead_pose`][]
-        with `throw=False`). It must not call LAPACK (`jnp.linalg`): such programs were
-        seen to hang when run from two devices at once (DESIGN §8).
-    - `batch_size`: problems per `vmap`-ed step. Keyword only.
-    - `devices`: the devices to shard over; default all of `jax.devices()`. Keyword only.
-
-    **Returns:** a jitted function of the batched arguments (leading axis = problems, any
-    size: padded internally to a multiple of the device count) returning `fn`'s outputs
-    with the same leading axis. Results do not depend on `batch_size` or the devices.
-    """
-    if not isinstance(batch_size, int) or batch_size < 1:
-        raise ValueError(f"`batch_size` must be a positive int; got {batch_size!r}.")
-    devs = np.array(jax.devices() if devices is None else list(devices))
-    mesh = jax.sharding.Mesh(devs, ("problems",))
-    spec = jax.sharding.PartitionSpec("problems")
-    nd = devs.size
-
-    def local(*args):
-        m = jax.tree.leaves(args)[0].shape[0]
-        return jax.lax.map(lambda a: fn(*a), args, batch_size=min(batch_size, m))
-
-    sharded = jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
-
-    @jax.jit
-    def run(*args):
-        leaves = jax.tree.leaves(args)
-        if not leaves:
-            raise ValueError("`map_problems`: the batched function needs array arguments.")
-        n = leaves[0].shape[0]
-        pad = (-n) % nd
-        if pad:
-            args = jax.tree.map(
-                lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]), args
-            )
-        out = sharded(*args)
-        return jax.tree.map(lambda o: o[:n], out) if pad else out
-
-    return run

@@ -27,7 +27,8 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Bool, Float, Scalar
 
-from .._core.numerics import safe_sqrt
+from .._core.linalg import adjugate3, det3
+from .._core.numerics import as_floating, safe_sqrt
 
 
 _GN_STEPS = 3
@@ -60,22 +61,6 @@ def _safe_normalize(v: Float[Array, "3"]) -> tuple[Float[Array, "3"], Scalar]:
     ok = n2 > 0
     n = jnp.sqrt(jnp.where(ok, n2, 1.0))
     return jnp.where(ok, v / n, 0.0), jnp.where(ok, n, 0.0)
-
-
-def _det3(M: Float[Array, "3 3"]) -> Scalar:
-    return (
-        M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1])
-        - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
-        + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0])
-    )
-
-
-def _adj3(M: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
-    """Adjugate (transposed cofactor matrix): `M @ adj(M) = det(M) I`."""
-    c0 = jnp.cross(M[1], M[2])
-    c1 = jnp.cross(M[2], M[0])
-    c2 = jnp.cross(M[0], M[1])
-    return jnp.stack([c0, c1, c2], axis=1)
 
 
 def _largest_cross(M: Float[Array, "3 3"]) -> Float[Array, "3"]:
@@ -162,9 +147,9 @@ def _refine_depths(lam, a, b):
                 jnp.stack([zero, 2.0 * (l2 - b[2] * l3), 2.0 * (l3 - b[2] * l2)]),
             ]
         )
-        det = _det3(J)
+        det = det3(J)
         ok = jnp.abs(det) > tiny
-        step = jnp.sum(_adj3(J) * r[None, :], axis=1) / jnp.where(ok, det, 1.0)
+        step = jnp.sum(adjugate3(J)[0] * r[None, :], axis=1) / jnp.where(ok, det, 1.0)
         new = lam - step
         r_new = _depth_residuals(new, a, b)
         better = ok & (jnp.sum(r_new * r_new) <= jnp.sum(r * r)) & jnp.all(jnp.isfinite(new))
@@ -206,6 +191,7 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
     and the polished depths satisfy the distance equations. Invalid candidates are the
     identity pose. Single problem; batch with `jax.vmap`. Works in float32 and float64.
     """
+    points_world, bearings = as_floating(points_world), as_floating(bearings)
     if points_world.shape != (3, 3) or bearings.shape != (3, 3):
         raise ValueError(
             "`points_world` and `bearings` must both have shape (3, 3); got "
@@ -233,11 +219,11 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
         D1 = a23 * M12 - a12 * M23
         D2 = a23 * M13 - a13 * M23
         # det(D1 + g D2) = det D1 + g tr(adj(D1) D2) + g^2 tr(D1 adj(D2)) + g^3 det D2.
-        k3 = _det3(D2)
+        k3 = det3(D2)
         # trace(A B) = sum(A * B^T): element-wise, no batched `dot` under `vmap`.
-        k2 = jnp.sum(D1 * _adj3(D2).T)
-        k1 = jnp.sum(_adj3(D1) * D2.T)
-        k0 = _det3(D1)
+        k2 = jnp.sum(D1 * adjugate3(D2)[0].T)
+        k1 = jnp.sum(adjugate3(D1)[0] * D2.T)
+        k0 = det3(D1)
         # Solve in g (D0 = D1 + g D2) or in 1/g (D0 = D2 + mu D1), whichever has the larger
         # leading coefficient: avoids dividing by a vanishing det D2.
         use_g = jnp.abs(k3) >= jnp.abs(k0)

@@ -32,7 +32,7 @@ from .trial import METHODS, run_trial
 
 
 FIELDS = (
-    "status", "position", "rotation", "ypr", "position_vector",
+    "status", "gated", "position", "rotation", "ypr", "position_vector",
     "crlb_position_var", "crlb_rotation_var", "crlb_position_sample",
     "crlb_rotation_sample", "nees",
 )
@@ -120,7 +120,7 @@ def _chunk_inputs(scenario: Scenario, seed: int, start: int, chunk_size: int, me
     padded = -(-chunk_size // n_dev) * n_dev
     # seed and start are passed as arrays so that every chunk reuses one compilation.
     return (
-        scenario, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int64), padded,
+        scenario, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int32), padded,
         tuple(methods),
     )
 
@@ -227,7 +227,7 @@ def _study_chunks(
         "seed": seed,
         "chunk_size": chunk_size,
         "methods": list(methods),
-        "format": 2,
+        "format": 3,
     }
     if out_dir is not None:
         os.makedirs(out_dir, exist_ok=True)

@@ -10,7 +10,7 @@ from collections import Counter
 import numpy as np
 
 from .._core.results import status_names
-from .trial import CAMERAS
+from .._cycle.layout import CAMERAS
 
 
 def describe(x: np.ndarray) -> dict[str, float]:
@@ -58,6 +58,7 @@ def summarize(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
         out["methods"][method] = {
             "n_ok": int(ok.sum()),
             "failures": dict(sorted(failures.items())),
+            "gates": gate_counts(study, mi, ok),
             "cameras": cameras,
         }
     if "crlb_position_var" in study:
@@ -65,6 +66,16 @@ def summarize(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
     if "refined" in methods and "nees" in study:
         out["nees"] = nees_summary(study, methods)
     return out
+
+
+def gate_counts(study: dict[str, np.ndarray], mi: int, ok: np.ndarray) -> dict[str, int]:
+    """Of the trials a method's solver estimated (`ok`), how many its gates flag, by the
+    status they give (`inconsistent_fit`, `unobservable`, `ambiguous`)."""
+    if "gated" not in study:
+        return {}
+    names = status_names()
+    flagged = study["gated"][ok, mi]
+    return dict(sorted(Counter(names[int(c)] for c in flagged[flagged != 0]).items()))
 
 
 def crlb_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
@@ -182,6 +193,7 @@ class StreamingSummary:
         self._n = 0
         self._n_ok = np.zeros(len(self.methods), np.int64)
         self._failures = [Counter() for _ in self.methods]
+        self._gates = [Counter() for _ in self.methods]
         self._crlb = np.zeros((2, n_cam))
         self._crlb_n = 0
         self._nees_sum = np.zeros(n_cam)
@@ -204,6 +216,9 @@ class StreamingSummary:
             ok = status[:, mi] == 0
             self._n_ok[mi] += ok.sum()
             self._failures[mi].update(names.get(int(c), str(int(c))) for c in status[~ok, mi])
+            if "gated" in arrays:
+                flagged = arrays["gated"][ok, mi]
+                self._gates[mi].update(names[int(c)] for c in flagged[flagged != 0])
             for k, v in enumerate(values):
                 for ci in range(len(CAMERAS)):
                     self._errors.update(self._column(k, mi, ci), v[ok, mi, ci])
@@ -238,6 +253,7 @@ class StreamingSummary:
             out["methods"][method] = {
                 "n_ok": int(self._n_ok[mi]),
                 "failures": dict(sorted(self._failures[mi].items())),
+                "gates": dict(sorted(self._gates[mi].items())),
                 "cameras": cameras,
             }
         if self._crlb_n:

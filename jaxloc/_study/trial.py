@@ -7,16 +7,18 @@ import jax.random as jr
 import jaxlie
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
-from .._cameras.presets import R_BODY_OVERHEAD
-from .._core.numerics import adjugate3, safe_norm
-from .._core.poses import rotation_error, ypr_from_rotation
+from .._core.linalg import adjugate3, psd_cholesky3
+from .._core.numerics import safe_norm
+from .._core.poses import compose, inverse, rotation_error, ypr_from_rotation
 from .._core.results import RESULTS, status_code
+from .._cycle.estimate import CycleEstimate
 from .._cycle.observations import CyclePoses
-from .._refine.covariance import _covariance_at, _covariance_inputs, _crlb_inputs
+from .._cycle.rig import Rig
+from .._model.covariance import covariance_at, crlb_inputs
 from .._refine.cycle import refine_cycle
 from .._sim.scenario import Scenario
 from .._sim.simulate import simulate_cycle
-from .._solvers.strategies import CycleEstimate, localize_cycle_methods
+from .._solvers.localize import localize_cycle_methods
 
 
 #: Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
@@ -30,8 +32,6 @@ METHODS = ("paper", "robust", "refined")
 #: `nonlinear_max_steps_reached`, not silently kept (measured on the paper's scenario:
 #: median 8 steps, p99 16).
 REFINE_MAX_STEPS = 24
-#: Order of the cameras in every per-camera array: overhead C, then C1, C2, C3.
-CAMERAS = ("C", "C1", "C2", "C3")
 
 
 class TrialErrors(eqx.Module):
@@ -44,7 +44,12 @@ class TrialErrors(eqx.Module):
     **Fields:**
 
     - `status`: int32 status code per method (0 = successful; see
-      [`jaxloc.status_names`][]), shape `(methods,)`.
+      [`jaxloc.status_names`][]), shape `(methods,)`: for the closed forms the solver's
+      own status (a study measures every estimate a closed form produced), for the
+      refinement its final status, gates included.
+    - `gated`: every method's final status, gates included (what
+      [`jaxloc.localize_cycle`][] and [`jaxloc.refine_cycle`][] return), shape
+      `(methods,)`.
     - `position`: Euclidean position error (m), shape `(methods, 4)`.
     - `rotation`: geodesic rotation error (rad), shape `(methods, 4)`.
     - `ypr`: yaw, pitch, roll errors (rad, estimate minus truth, wrapped to
@@ -65,6 +70,7 @@ class TrialErrors(eqx.Module):
     """
 
     status: Int[Array, " methods"]
+    gated: Int[Array, " methods"]
     position: Float[Array, "methods 4"]
     rotation: Float[Array, "methods 4"]
     ypr: Float[Array, "methods 4 3"]
@@ -76,17 +82,17 @@ class TrialErrors(eqx.Module):
     nees: Float[Array, "4"]
 
 
-def overhead_body(T_world_overhead: jaxlie.SE3) -> jaxlie.SE3:
-    """Climbing robot's body pose from its camera's optical-frame pose (fixed mount)."""
-    R_body_cam = jaxlie.SO3.from_matrix(
-        jnp.asarray(R_BODY_OVERHEAD, T_world_overhead.wxyz_xyz.dtype)
-    )
-    return T_world_overhead @ jaxlie.SE3.from_rotation(R_body_cam.inverse())
+def overhead_body(T_world_overhead: jaxlie.SE3, rig: Rig) -> jaxlie.SE3:
+    """Climbing robot's body pose from its camera's optical-frame pose, through the rig's
+    mount of C: `T_world_body = T_world_camera @ T_body_camera^-1`."""
+    dtype = T_world_overhead.wxyz_xyz.dtype
+    T_body_cam = jaxlie.SE3(rig.mounts[0].astype(dtype))
+    return compose(T_world_overhead, inverse(T_body_cam))
 
 
-def final_poses(poses: CyclePoses) -> jaxlie.SE3:
+def final_poses(poses: CyclePoses, rig: Rig) -> jaxlie.SE3:
     """End-of-cycle body poses of (C, C1, C2, C3), batch shape `(4,)`."""
-    body_c = overhead_body(poses.T_world_overhead)
+    body_c = overhead_body(poses.T_world_overhead, rig)
     ground = poses.T_world_body.wxyz_xyz[-1]
     return jaxlie.SE3(jnp.concatenate([body_c.wxyz_xyz[None], ground], axis=0))
 
@@ -95,9 +101,9 @@ def _wrap(angle):
     return jnp.arctan2(jnp.sin(angle), jnp.cos(angle))
 
 
-def score(estimate: CyclePoses, truth: CyclePoses):
+def score(estimate: CyclePoses, truth: CyclePoses, rig: Rig):
     """Per-camera errors of `estimate` against `truth` (see [`jaxloc.TrialErrors`][])."""
-    est, tru = final_poses(estimate), final_poses(truth)
+    est, tru = final_poses(estimate, rig), final_poses(truth, rig)
 
     def one(e, t):
         e, t = jaxlie.SE3(e), jaxlie.SE3(t)
@@ -114,16 +120,16 @@ def score(estimate: CyclePoses, truth: CyclePoses):
 
 
 def estimate_all(
-    observations, scenario: Scenario, methods: tuple[str, ...] = METHODS
+    observations, rig: Rig, methods: tuple[str, ...] = METHODS
 ) -> list[CycleEstimate]:
     """Run every requested estimator on the same observations (shared ground chain)."""
     closed = tuple(m for m in methods if m != "refined")
     if "refined" in methods and "robust" not in closed:
         closed = closed + ("robust",)
-    estimates = dict(zip(closed, localize_cycle_methods(observations, closed)))
+    estimates = dict(zip(closed, localize_cycle_methods(observations, rig, closed)))
     if "refined" in methods:
         estimates["refined"] = refine_cycle(
-            observations, scenario, estimates["robust"], max_steps=REFINE_MAX_STEPS, throw=False
+            observations, rig, estimates["robust"], max_steps=REFINE_MAX_STEPS, throw=False
         )
     return [estimates[m] for m in methods]
 
@@ -140,34 +146,10 @@ def _nees(error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]) -> Floa
     return jax.vmap(one)(error, covariance)
 
 
-def _psd_cholesky3(P: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
-    """Lower Cholesky factor of a 3x3 positive semi-definite matrix, element-wise (no
-    LAPACK call); a zero pivot (e.g. the fixed reference robot's zero covariance) gives a
-    zero column."""
-
-    def root(x):
-        ok = x > 0
-        return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
-
-    def div(a, b):
-        ok = b > 0
-        return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
-
-    l00 = root(P[0, 0])
-    l10, l20 = div(P[1, 0], l00), div(P[2, 0], l00)
-    l11 = root(P[1, 1] - l10 * l10)
-    l21 = div(P[2, 1] - l20 * l10, l11)
-    l22 = root(P[2, 2] - l20 * l20 - l21 * l21)
-    zero = jnp.zeros_like(l00)
-    return jnp.stack(
-        [jnp.stack([l00, zero, zero]), jnp.stack([l10, l11, zero]), jnp.stack([l20, l21, l22])]
-    )
-
-
 def _bound_samples(key, covariance: Float[Array, "4 3 3"]) -> Float[Array, "4"]:
     """Norm of one `N(0, P)` draw per camera."""
     z = jr.normal(key, (4, 3), covariance.dtype)
-    L = jax.vmap(_psd_cholesky3)(covariance)
+    L = jax.vmap(psd_cholesky3)(covariance)
     return safe_norm(jnp.einsum("cij,cj->ci", L, z))
 
 
@@ -182,31 +164,28 @@ def run_trial(
     but meaningless: statistics must skip them (see [`jaxloc.summarize`][]).
     """
     truth, observations, all_visible = simulate_cycle(scenario, key)
-    strategy = observations.strategy
+    rig, strategy = scenario.rig, observations.strategy
     fields = []
-    refined_error = None
-    # The Cramér–Rao bound (information at the truth) and the refined estimate's
-    # covariance (information at the estimate) are one computation at two linearization
-    # points: run them as one `vmap` over both, so it is compiled once.
-    points = [_crlb_inputs(scenario, truth.poses, strategy)]
-    for method, estimate in zip(methods, estimate_all(observations, scenario, methods)):
-        result = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
-        pos, rot, ypr, diff = score(estimate.poses, truth.poses)
-        fields.append((status_code(result), pos, rot, ypr, diff))
+    refined_error = refined_covariance = None
+    for method, estimate in zip(methods, estimate_all(observations, rig, methods)):
+        solver = estimate.result if method == "refined" else estimate.checks.solver_result
+        status = RESULTS.where(all_visible, solver, RESULTS.not_visible)
+        gated = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
+        pos, rot, ypr, diff = score(estimate.poses, truth.poses, rig)
+        fields.append((status_code(status), status_code(gated), pos, rot, ypr, diff))
         if method == "refined":
-            refined_error = diff
-            points.append(_covariance_inputs(observations, scenario, estimate))
+            refined_error, refined_covariance = diff, estimate.covariance
     stacked = [jnp.stack(f) for f in zip(*fields)]
-    covs = jax.vmap(lambda T_place, T_over, data: _covariance_at(
-        T_place, T_over, data, scenario, strategy
-    ))(*jax.tree.map(lambda *x: jnp.stack(x), *points))
-    crlb_pos = jnp.trace(covs.position[0], axis1=-2, axis2=-1)
-    crlb_rot = jnp.trace(covs.rotation[0], axis1=-2, axis2=-1)
+    bound = covariance_at(
+        *crlb_inputs(rig, truth.poses, scenario.odometry_sigma_rel, strategy), rig, strategy
+    )
+    crlb_pos = jnp.trace(bound.position, axis1=-2, axis2=-1)
+    crlb_rot = jnp.trace(bound.rotation, axis1=-2, axis2=-1)
     if refined_error is None:
         nees = jnp.full((4,), jnp.nan, dtype=truth.poses.T_world_overhead.wxyz_xyz.dtype)
     else:
-        nees = _nees(refined_error, covs.position[1])
+        nees = _nees(refined_error, refined_covariance.position)
     # A key of its own: the draws change nothing else in the trial.
     k_pos, k_rot = jr.split(jr.fold_in(key, 0x0C7B))
-    samples = _bound_samples(k_pos, covs.position[0]), _bound_samples(k_rot, covs.rotation[0])
+    samples = _bound_samples(k_pos, bound.position), _bound_samples(k_rot, bound.rotation)
     return TrialErrors(*stacked, crlb_pos, crlb_rot, *samples, nees)

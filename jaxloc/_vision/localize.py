@@ -12,17 +12,14 @@ over the cycle must be seen). A required marker that is missing, an ambiguous co
 (two blobs pass every test), an unreadable image or a failed estimate raise a
 `ValueError` naming the team-file field and the value: never a wrong pose.
 
-**PTZ and refinement.** A [`jaxloc.Scenario`][] holds C1's camera as a
-[`jaxloc.PTZCamera`][] (square pixels, centred principal point, no distortion), which a
-calibrated pinhole generally is not. The refinement therefore sees C1's detections
-re-projected into the *equivalent ideal* PTZ camera (same pan/tilt, focal length
-`sqrt(fx fy)`): pixel -> calibrated bearing -> ideal pixel. Bearings and residual scale
-are preserved to first order.
+**The rig.** The team's cameras enter the gates, the refinement and the covariance
+exactly as calibrated ([`jaxloc.rig_for`][]): every camera file's model, distortion
+included, and C1's calibrated pinhole mounted through the head's pan and tilt; the
+detected pixels are the measurements.
 """
 
 import dataclasses
 import json
-import math
 import os
 from typing import Any
 
@@ -31,15 +28,16 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
-from .._cameras.models import OmniCamera, PTZCamera
-from .._cameras.presets import R_BODY_OMNI, R_BODY_PTZ
+from .._cameras.models import OmniCamera
+from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
 from .._core.poses import ypr_from_rotation
 from .._core.results import RESULTS, status_code, status_names
-from .._cycle.observations import CycleObservations, num_steps
-from .._refine.covariance import cycle_covariance
+from .._cycle.layout import num_steps, placement_ids
+from .._cycle.observations import CycleObservations
+from .._cycle.rig import mount_pose, Rig
 from .._refine.cycle import refine_cycle
 from .._sim.scenario import Scenario
-from .._solvers.strategies import localize_cycle, overhead_point_ids
+from .._solvers.localize import localize_cycle
 from .markers import (
     annulus_mask,
     check_image,
@@ -57,25 +55,26 @@ from .team import GROUND, ROBOTS, save_team, Team
 _SEES = {"C": GROUND, "C1": ("C2", "C3"), "C2": ("C1", "C3"), "C3": ("C1", "C2")}
 
 
-def ptz_equivalent(team: Team) -> PTZCamera:
-    """The ideal [`jaxloc.PTZCamera`][] standing in for C1's calibrated camera in the
-    refinement (same pan, tilt, image size; focal length `sqrt(fx fy)` at zoom 0)."""
-    cam = team.cameras["C1"]
-    w, h = cam.image_size
-    f = math.sqrt(float(cam.fx) * float(cam.fy))
-    hfov = 2.0 * math.atan(0.5 * w / f)
-    return PTZCamera(pan=team.pan, tilt=team.tilt, zoom=0.0, hfov_wide=hfov,
-                     hfov_tele=0.5 * hfov, image_size=(w, h))  # fmt: skip
+def c1_mount(team: Team) -> np.ndarray:
+    """`R_body_camera` of C1's calibrated camera: the PTZ mount `R_BODY_PTZ` times the
+    head's pan and tilt (`R_base_optical = Ry(pan) Rx(tilt)`, jaxloc's PTZ convention)."""
+    R_base_optical = jaxlie.SO3.from_y_radians(team.pan) @ jaxlie.SO3.from_x_radians(team.tilt)
+    return R_BODY_PTZ @ np.asarray(R_base_optical.as_matrix())
 
 
-def scenario_for(team: Team) -> Scenario:
-    """The [`jaxloc.Scenario`][] the refinement and the covariance need: the team's
-    cameras (C1 as [`jaxloc.ptz_equivalent`][]), Gaussian pixel noise of
-    `team.pixel_sigma` per axis, `team.odometry_sigma_rel`, the strategy."""
-    return Scenario(
-        overhead=team.cameras["C"], ptz=ptz_equivalent(team), omni2=team.cameras["C2"],
-        omni3=team.cameras["C3"], pixel_sigma=team.pixel_sigma, noise_model="gaussian",
-        odometry_sigma_rel=team.odometry_sigma_rel, strategy=team.strategy,
+def rig_for(team: Team) -> Rig:
+    """The [`jaxloc.Rig`][] of a team, exactly as calibrated: its four camera files'
+    models (distortion included; C1's pinhole at the zoom used, its mount turned by the
+    head's pan and tilt), the paper's mounts otherwise, markers at the body origins, and
+    Gaussian pixel noise of `team.pixel_sigma` per axis."""
+    mounts = np.stack([
+        mount_pose(R_BODY_OVERHEAD), mount_pose(c1_mount(team)), mount_pose(R_BODY_OMNI),
+        mount_pose(R_BODY_OMNI),
+    ])  # fmt: skip
+    cams = team.cameras
+    return Rig(
+        cams["C"], cams["C1"], cams["C2"], cams["C3"], mounts=jnp.asarray(mounts),
+        pixel_sigma=team.pixel_sigma, noise_model="gaussian",
     )  # fmt: skip
 
 
@@ -174,31 +173,25 @@ def _color_text(c: MarkerColor) -> str:
 def observations_from_detections(
     team: Team, detections: dict[tuple[int, str], dict[str, MarkerDetection]]
 ) -> CycleObservations:
-    """Bearings (body frames for the ground robots, camera frame for C), pixels and
-    odometry of one cycle from its detections. C1's `mutual_pixels` are expressed in
-    [`jaxloc.ptz_equivalent`][]'s image (see the module docstring)."""
+    """Bearings (body frames for the ground robots, camera frame for C), pixels (as
+    detected, in each calibrated camera's image) and odometry of one cycle from its
+    detections; an undetected overhead marker is missing (NaN)."""
     steps = num_steps(team.strategy)
     idx = {"C1": 0, "C2": 1, "C3": 2}
+    mounts = {"C1": c1_mount(team), "C2": R_BODY_OMNI, "C3": R_BODY_OMNI}
     mutual = np.zeros((steps, 3, 3, 3))
     mpix = np.full((steps, 3, 3, 2), np.nan)
-    over = np.zeros((steps, 3, 3))
+    over = np.full((steps, 3, 3), np.nan)
     over_vis = np.zeros((steps, 3), bool)
     opix = np.full((steps, 3, 2), np.nan)
-    ptz = ptz_equivalent(team)
-    R_base_opt = np.asarray(ptz.optical_rotation().as_matrix())
     for k in range(steps):
         for obs in GROUND:
             i = idx[obs]
             for t, dt in detections[(k, obs)].items():
                 j = idx[t]
                 b = np.asarray(_unproject(team.cameras[obs], jnp.asarray(dt.pixel)))
-                if obs == "C1":
-                    b_base = R_base_opt @ b
-                    mutual[k, i, j] = R_BODY_PTZ @ b_base
-                    mpix[k, i, j] = np.asarray(_project(ptz, jnp.asarray(b_base)))
-                else:
-                    mutual[k, i, j] = R_BODY_OMNI @ b
-                    mpix[k, i, j] = dt.pixel
+                mutual[k, i, j] = mounts[obs] @ b
+                mpix[k, i, j] = dt.pixel
         for t, dt in detections[(k, "C")].items():
             # A marker cut by the image border would bias C's pose: dropped (the
             # overhead solve has redundancy; too few remaining placements raise below).
@@ -208,7 +201,7 @@ def observations_from_detections(
                 over_vis[k, j] = True
                 opix[k, j] = dt.pixel
     # Distinct robot placements seen by C (robots that did not move keep theirs).
-    ids = overhead_point_ids(team.strategy)
+    ids = placement_ids(team.strategy)
     seen = {int(ids[k, j]) for k in range(steps) for j in range(3) if over_vis[k, j]}
     if len(seen) < 4:
         raise ValueError(
@@ -232,18 +225,8 @@ def _unproject(camera, uv):
 
 
 @eqx.filter_jit
-def _project(camera, p):
-    return camera.project(p)
-
-
-@eqx.filter_jit
-def _localize(observations: CycleObservations):
-    return localize_cycle(observations, throw=False)
-
-
-@eqx.filter_jit
-def _covariance(observations, scenario, estimate):
-    return cycle_covariance(observations, scenario, estimate)
+def _localize(observations: CycleObservations, rig: Rig):
+    return localize_cycle(observations, rig, throw=False)
 
 
 @dataclasses.dataclass
@@ -339,53 +322,60 @@ def localize_images(
     """
     detections = detect_team_images(team, images)
     observations = observations_from_detections(team, detections)
-    closed = _localize(observations)
-    code = int(status_code(closed.result))
-    if code != 0:
-        raise ValueError(
-            f"Localization from the images of `{team.source}` failed: "
-            f"{status_names()[code]} ({RESULTS[closed.result]}). No pose is reported."
-        )
+    rig = rig_for(team)
+    closed = _localize(observations, rig)
+    usable = (RESULTS.successful, RESULTS.inconsistent_fit) if refine else (RESULTS.successful,)
+    if not any(bool(closed.result == r) for r in usable):
+        _fail(team, closed, "the closed-form estimate")
+    if not refine:
+        return ImageLocalization(closed, closed, None, observations, detections, "closed_form", [])
+    refined = refine_cycle(observations, rig, closed, throw=False)
     notes: list[str] = []
-    estimate, method, cov = closed, "closed_form", None
-    if refine:
-        scenario = scenario_for(team)
-        refined = refine_cycle(observations, scenario, closed, throw=False)
-        rcode = int(status_code(refined.result))
-        if rcode == 0:
-            estimate, method = refined, "refined"
-        elif rcode == int(status_code(RESULTS.ambiguous)):
-            estimate, method = refined, "refined"
-            st = refined.stats
-            notes.append(
-                f"Ambiguous: another pose, more than 10 cm away, fits the images almost as "
-                f"well (chi-square {float(st['runner_up_chi2']):.1f} against "
-                f"{float(st['chi2']):.1f}); the better one is reported. Move the robots "
-                "to a less symmetric formation to tell them apart."
-            )
-        elif rcode == int(status_code(RESULTS.inconsistent_fit)):
-            # The measurements do not fit one geometry at the stated noise: a wrong blob
-            # taken for a marker, a wrong camera file, or `pixel_sigma` too small. The
-            # closed-form estimate rests on the same measurements: report no pose.
-            st = refined.stats
-            raise ValueError(
-                f"The images of `{team.source}` are inconsistent: the refined fit has "
-                f"chi-square {float(st['chi2']):.1f} for {int(st['dof'])} degrees of freedom "
-                f"(RMS pixel residual {float(st['rms_pixel_error']):.3f} px against "
-                f"`pixel_sigma` = {team.pixel_sigma} px). Check the detections (a wrong blob "
-                "taken for a marker), the camera files and `pixel_sigma`; `--no-refine` "
-                "gives the closed-form estimate without this check."
-            )
-        else:
-            notes.append(
-                f"Refinement did not succeed ({status_names()[rcode]}); the closed-form "
-                "estimate is reported (check `pixel_sigma` and the detections)."
-            )
-        if covariance and method == "refined":
-            cov = _covariance(observations, scenario, estimate)
-            if not bool(cov.ok):
-                notes.append("The covariance is not available (singular information matrix).")
-    return ImageLocalization(estimate, closed, cov, observations, detections, method, notes)
+    if bool(refined.result == RESULTS.ambiguous):
+        notes.append(
+            f"Ambiguous: another pose, more than 10 cm away, fits the images almost as "
+            f"well (chi-square {float(refined.stats['runner_up_chi2']):.1f} against "
+            f"{float(refined.checks.chi2):.1f}); the better one is reported. Move the robots "
+            "to a less symmetric formation to tell them apart."
+        )
+    elif bool(refined.result == RESULTS.inconsistent_fit):
+        _inconsistent(team, refined)
+    elif not bool(refined.result == RESULTS.successful):
+        if not bool(closed.result == RESULTS.successful):
+            _fail(team, refined, "the refinement")
+        notes.append(
+            f"Refinement did not succeed ({status_names()[int(status_code(refined.result))]}); "
+            "the closed-form estimate is reported (check `pixel_sigma` and the detections)."
+        )
+        method = "closed_form"
+        return ImageLocalization(closed, closed, None, observations, detections, method, notes)
+    cov = refined.covariance if covariance else None
+    if cov is not None and not bool(cov.ok):
+        notes.append("The covariance is not available (singular information matrix).")
+    return ImageLocalization(refined, closed, cov, observations, detections, "refined", notes)
+
+
+def _fail(team: Team, estimate, what: str):
+    code = int(status_code(estimate.result))
+    raise ValueError(
+        f"Localization from the images of `{team.source}` failed: {what} is "
+        f"{status_names()[code]} ({RESULTS[estimate.result]}). No pose is reported."
+    )
+
+
+def _inconsistent(team: Team, refined):
+    # The measurements do not fit one geometry at the stated noise: a wrong blob taken
+    # for a marker, a wrong camera file, or `pixel_sigma` too small. The closed-form
+    # estimate rests on the same measurements: report no pose.
+    checks = refined.checks
+    raise ValueError(
+        f"The images of `{team.source}` are inconsistent: the refined fit has chi-square "
+        f"{float(checks.chi2):.1f} for {int(checks.dof)} degrees of freedom (limit "
+        f"{float(checks.chi2_limit):.1f}; RMS pixel residual "
+        f"{float(refined.stats['rms_pixel_error']):.3f} px against `pixel_sigma` = "
+        f"{team.pixel_sigma} px). Check the detections (a wrong blob taken for a marker), "
+        "the camera files and `pixel_sigma`."
+    )
 
 
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
@@ -412,13 +402,14 @@ def team_from_rendered(
     steps = num_steps(scenario.strategy)
     team = Team(
         strategy=scenario.strategy,
-        cameras={"C": scenario.overhead, "C1": scenario.ptz.pinhole(), "C2": scenario.omni2,
-                 "C3": scenario.omni3},
+        cameras={"C": scenario.rig.overhead, "C1": scenario.rig.ptz.pinhole(),
+                 "C2": scenario.rig.omni2, "C3": scenario.rig.omni3},
         markers={"C1": DEFAULT_MARKER_COLORS["red"], "C2": DEFAULT_MARKER_COLORS["green"],
                  "C3": DEFAULT_MARKER_COLORS["blue"]},
         odometry=np.asarray(observations.odometry, np.float64),
         odometry_sigma_rel=float(scenario.odometry_sigma_rel),
-        pixel_sigma=pixel_sigma, pan=float(scenario.ptz.pan), tilt=float(scenario.ptz.tilt),
+        pixel_sigma=pixel_sigma, pan=float(scenario.rig.ptz.pan),
+        tilt=float(scenario.rig.ptz.tilt),
         steps=[{r: os.path.join(out_dir, f"step{k}_{r}.png") for r in ROBOTS}
                for k in range(steps)],
         source=os.path.join(out_dir, "team.yaml"),

@@ -43,7 +43,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._cameras.models import AbstractCamera, OmniCamera
-from .._cameras.presets import R_BODY_OMNI, R_BODY_PTZ
+from .._cycle.sightings import in_body, marker_in_world, mutual_points
+from .._model.measurements import rotations
 
 
 #: Default marker colours (BGR) of C1, C2, C3: saturated red, green, blue. Their hues
@@ -343,19 +344,21 @@ def render_markers(
     return image, truth
 
 
-def _rt(wxyz_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rotation matrix and translation of one wxyz_xyz pose."""
-    T = jaxlie.SE3(jnp.asarray(wxyz_xyz))
-    return np.asarray(T.rotation().as_matrix()), np.asarray(T.translation())
-
-
-def _rel_in_camera(T_world_body: jaxlie.SE3, k: int, i: int, mount: np.ndarray) -> np.ndarray:
-    """Positions of the three robots at step `k` in robot `i`'s camera frame."""
-    T = np.asarray(T_world_body.wxyz_xyz[k])
-    R_i, t_i = _rt(T[i])
-    p = T[:, 4:]
-    p_body = (p - t_i) @ R_i  # R_i^T (p_j - t_i), row-wise
-    return p_body @ mount  # p_cam = M^T p_body, row-wise
+def _camera_points(rig, poses) -> tuple[np.ndarray, np.ndarray]:
+    """Every marker in every camera frame at every step, through the rig's mounts and
+    markers (the one projection path, `jaxloc._cycle.sightings`): `(mutual (steps, 3, 3,
+    3), overhead (steps, 3, 3))`, `mutual[k, i, j]` robot `j` in robot `i`'s camera."""
+    T = poses.T_world_body.wxyz_xyz
+    R, p = rotations(T), T[..., 4:]
+    dtype = T.dtype
+    markers = rig.markers[1:].astype(dtype)
+    mutual, _ = mutual_points(
+        R, p, rig.mount_rotations()[1:].astype(dtype), rig.mount_translations()[1:].astype(dtype),
+        markers,
+    )  # fmt: skip
+    T_o = poses.T_world_overhead.wxyz_xyz
+    over = in_body(rotations(T_o), T_o[4:], marker_in_world(R, p, markers))
+    return np.asarray(mutual), np.asarray(over)
 
 
 def render_cycle(
@@ -379,7 +382,7 @@ def render_cycle(
 
     **Arguments:**
 
-    - `scenario`: the [`jaxloc.Scenario`][] (cameras, strategy).
+    - `scenario`: the [`jaxloc.Scenario`][] (its rig's cameras, mounts and markers).
     - `truth`: the [`jaxloc.CycleTruth`][] of [`jaxloc.simulate_cycle`][].
     - `key`: JAX PRNG key. Keyword only, as are the following.
     - `out_dir`: if given, write `step{k}_{camera}.png` (camera `C`, `C1`, `C2`, `C3`)
@@ -397,18 +400,15 @@ def render_cycle(
     images: dict[tuple[int, str], np.ndarray] = {}
     per_image: dict[str, Any] = {}
     names = ("C1", "C2", "C3")
-    T_over = poses.T_world_overhead
-    R_o, t_o = _rt(np.asarray(T_over.wxyz_xyz))
+    rig = scenario.rig
+    mutual, over = _camera_points(rig, poses)
     for k in range(steps):
-        p_world = np.asarray(poses.T_world_body.wxyz_xyz[k])[:, 4:]
-        p_over = (p_world - t_o) @ R_o
-        jobs = [("C", scenario.overhead, p_over, (0, 1, 2))]
-        jobs.append(("C1", scenario.ptz, _rel_in_camera(poses.T_world_body, k, 0, R_BODY_PTZ),
-                     (1, 2)))  # fmt: skip
-        jobs.append(("C2", scenario.omni2, _rel_in_camera(poses.T_world_body, k, 1, R_BODY_OMNI),
-                     (0, 2)))  # fmt: skip
-        jobs.append(("C3", scenario.omni3, _rel_in_camera(poses.T_world_body, k, 2, R_BODY_OMNI),
-                     (0, 1)))  # fmt: skip
+        jobs = [
+            ("C", rig.overhead, over[k], (0, 1, 2)),
+            ("C1", rig.ptz, mutual[k, 0], (1, 2)),
+            ("C2", rig.omni2, mutual[k, 1], (0, 2)),
+            ("C3", rig.omni3, mutual[k, 2], (0, 1)),
+        ]
         for c, (cam_name, camera, pts, seen) in enumerate(jobs):
             sel = list(seen)
             extra: dict[str, Any] = {}
@@ -426,7 +426,7 @@ def render_cycle(
         "marker_radius_m": radius,
         "marker_bgr": {n: list(c) for n, c in zip(names, colors)},
         "T_world_body_wxyz_xyz": np.asarray(poses.T_world_body.wxyz_xyz).tolist(),
-        "T_world_overhead_wxyz_xyz": np.asarray(T_over.wxyz_xyz).tolist(),
+        "T_world_overhead_wxyz_xyz": np.asarray(poses.T_world_overhead.wxyz_xyz).tolist(),
         "move_distances_m": np.asarray(truth.move_distances).tolist(),
         "images": per_image,
     }

@@ -1,0 +1,136 @@
+"""What a cycle's solvers return: the estimate, its covariance, its checks, its other starts.
+
+The closed forms ([`jaxloc.localize_cycle`][]) and the refinement ([`jaxloc.refine_cycle`][])
+return the same [`jaxloc.CycleEstimate`][]; its typed fields carry what one stage hands
+the next (the multi-start alternatives, the status before the gates), so nothing that
+code branches on travels through the `stats` dict of diagnostics.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+from .._core.results import RESULTS
+from .observations import CyclePoses
+
+
+class CycleCovariance(eqx.Module):
+    """Covariance (or Cramér–Rao bound) of one cycle's estimates.
+
+    **Fields:**
+
+    - `tangent`: covariance of the stacked tangent parameters, shape `(n, n)` with
+        `n = 6 (placements - 1) + 6`: placements 1, 2, ... (see
+        [`jaxloc.placement_ids`][]; placement 0, C1's start pose, is the gauge) then the
+        overhead camera, each `(v, omega)` of `T exp(delta)`.
+    - `position`: world-frame position covariance (m^2) of (C, C1, C2, C3) at the end of
+        the cycle, shape `(4, 3, 3)`; for C the camera centre. C1's is zero when C1 never
+        moved (concurrent strategy: its pose is the world frame).
+    - `rotation`: covariance of the rotation tangent `omega` (rad^2) of the same four
+        poses, shape `(4, 3, 3)` (C: its optical frame; the body frame's is the same
+        up to a fixed rotation, same trace).
+    - `ok`: whether the information matrix was positive definite (all entries are 0
+        otherwise).
+    """
+
+    tangent: Float[Array, "n n"]
+    position: Float[Array, "4 3 3"]
+    rotation: Float[Array, "4 3 3"]
+    ok: Bool[Array, ""]
+
+
+class FitCheck(eqx.Module):
+    """The goodness-of-fit and observability checks of one estimate (the gates).
+
+    **Fields:**
+
+    - `solver_result`: the solver's own status, before the gates (a closed form's
+      accuracy is studied on it: a study scores every estimate its solver produced).
+    - `chi2`: the sum of squared whitened residuals at the estimate.
+    - `chi2_min`: the minimum of the model linearized at the estimate, `chi2 - g^T (J^T
+      J)^-1 g`: the misfit no nearby pose explains (equal to `chi2` at a converged
+      refinement). The gate's statistic.
+    - `dof`: residuals used minus unknowns (int).
+    - `chi2_limit`: the 99.9% quantile of `chi2_min` under the rig's noise model; above it
+      the estimate is `inconsistent_fit`.
+    - `observable`: the information matrix at the estimate is positive definite and every
+      final pose's bound is below the documented limits (else `unobservable`).
+    """
+
+    solver_result: RESULTS
+    chi2: Float[Array, ""]
+    chi2_min: Float[Array, ""]
+    dof: Int[Array, ""]
+    chi2_limit: Float[Array, ""]
+    observable: Bool[Array, ""]
+
+
+class CycleStarts(eqx.Module):
+    """Other starts for a refinement: the closed form's other local minima (the concurrent
+    strategy's runner-up scales with their own overhead pose, and the winning scales with
+    the overhead solver's runner-up pose, e.g. the mirror pose of nearly coplanar points).
+
+    **Fields:** `scales` `(k, steps)`, the formations' metric scales of each start;
+    `T_world_overhead` `(k, 7)`, the overhead camera's optical-frame pose (`wxyz_xyz`);
+    `ok` `(k,)`, whether each start exists.
+    """
+
+    scales: Float[Array, "k steps"]
+    T_world_overhead: Float[Array, "k 7"]
+    ok: Bool[Array, " k"]
+
+
+class CycleEstimate(eqx.Module):
+    """Estimated poses of one localization cycle.
+
+    **Fields:**
+
+    - `poses`: a [`jaxloc.CyclePoses`][]: every ground robot's body pose at every step,
+      and the overhead camera's optical-frame pose, in the world frame `W` (C1's body frame
+      at the start of the cycle), metres.
+    - `scales`: metric scale applied to each step's formation (circumdiameter-1 units to
+      metres), shape `(steps,)`; all equal for the sequential strategy.
+    - `result`: a [`jaxloc.RESULTS`][] for the whole cycle, gates included:
+      `successful` means consistent with the measurements and observable (DESIGN §7).
+    - `stats`: diagnostics only (nothing branches on them): `"min_angle"` (rad, smallest
+      triangle angle over the steps), `"odometry_rms"` (m, odometry residual), the
+      overhead solver's `"planarity"`, `"collinearity"`, `"num_valid_candidates"`,
+      `"rms_angular_error"`; a refinement adds `"num_steps"`, `"rms_pixel_error"` and, for
+      a multi-start, `"start_picked"` and `"runner_up_chi2"`.
+    - `checks`: a [`FitCheck`][]: the gates' statistics and the status before them.
+    - `covariance`: the first-order [`jaxloc.CycleCovariance`][] at the estimate (what the
+      observability gate inverted; zeros where not positive definite).
+    - `alternatives`: a [`CycleStarts`][] (the concurrent strategy's closed form with the
+      robust overhead solver) or `None`.
+    """
+
+    poses: CyclePoses
+    scales: Float[Array, " steps"]
+    result: RESULTS
+    stats: dict[str, Array]
+    checks: FitCheck
+    covariance: CycleCovariance
+    alternatives: CycleStarts | None = None
+
+    @classmethod
+    def from_poses(
+        cls, poses: CyclePoses, *, scales=None, result: RESULTS = RESULTS.successful
+    ) -> "CycleEstimate":
+        """An estimate made of given poses (e.g. a start for [`jaxloc.refine_cycle`][]
+        from your own initial guess): `checks` and `covariance` are not computed (NaN,
+        zeros), `scales` default to ones, `result` to `successful`."""
+        T = poses.T_world_body.wxyz_xyz
+        dtype, steps = T.dtype, T.shape[-3]
+        placements = {4: 6, 3: 7}[steps]
+        n = 6 * placements
+        nan = jnp.full(T.shape[:-3], jnp.nan, dtype)
+        checks = FitCheck(
+            result, nan, nan, jnp.zeros(T.shape[:-3], jnp.int32), nan,
+            jnp.zeros(T.shape[:-3], bool),
+        )  # fmt: skip
+        zeros = jnp.zeros(T.shape[:-3] + (4, 3, 3), dtype)
+        covariance = CycleCovariance(
+            jnp.zeros(T.shape[:-3] + (n, n), dtype), zeros, zeros, jnp.zeros(T.shape[:-3], bool)
+        )
+        scales = jnp.ones(T.shape[:-3] + (steps,), dtype) if scales is None else scales
+        return cls(poses, scales, result, {}, checks, covariance)

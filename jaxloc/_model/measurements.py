@@ -1,0 +1,343 @@
+r"""The measurement model of a localization cycle and its Jacobian (DESIGN §5).
+
+Shared by the joint refinement ([`jaxloc.refine_cycle`][]), the covariance and the
+Cramér–Rao bound ([`jaxloc.cycle_covariance`][], [`jaxloc.cycle_crlb`][]) and the closed
+forms' goodness-of-fit and observability gates. Unknowns: the pose `T_world_body` of
+every distinct robot placement (see [`jaxloc.placement_ids`][]) and the overhead camera's
+optical-frame pose `T_world_overhead`, all `wxyz_xyz`. Measurements: every mutual
+sighting in pixels of the observing camera, every overhead pixel, every odometry
+distance, each whitened by its standard deviation. Cameras, mounts, markers and pixel
+noise come from a [`jaxloc.Rig`][], and every sighting goes through the one projection
+path of `jaxloc._cycle.sightings`.
+
+The Jacobian is assembled by the chain rule, not by differentiating the whole model:
+a sighting depends on two poses only (jaxlie's right perturbation `T exp(delta)`,
+`delta = (v, omega)`; see `jaxloc._cycle.sightings`), and only the camera projection is
+differentiated (`project_with_jacobian`). About 20x cheaper than `jax.jacfwd` over the
+~40 stacked tangent directions.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .._core.numerics import safe_norm
+from .._core.poses import rplus
+from .._cycle.layout import move_start_step, moving_robot, placement_ids
+from .._cycle.observations import CycleObservations, ODOMETRY_SIGMA_FLOOR
+from .._cycle.rig import ground_cameras_apply, PIXEL_SIGMA_FLOOR, Rig
+from .._cycle.sightings import (
+    camera_pose_jacobian,
+    in_body,
+    matmul,
+    matvec,
+    matvec_t,
+    mutual_points,
+    observer_jacobian,
+    target_jacobian,
+)
+
+
+def rotations(T: Float[Array, "*b 7"]) -> Float[Array, "*b 3 3"]:
+    """Rotation matrices of `wxyz_xyz` poses, any leading shape."""
+    flat = T.reshape(-1, 7)
+    R = jax.vmap(lambda w: jaxlie.SO3(w[:4]).as_matrix())(flat)
+    return R.reshape(T.shape[:-1] + (3, 3))
+
+
+def project_with_jacobian(camera, points: Float[Array, "*b 3"]):
+    """Pixels `(*b, 2)` and `d pixel / d point` `(*b, 2, 3)` of a camera model: the
+    model's own `project_with_jacobian` when it has one, else forward mode per point."""
+    if hasattr(camera, "project_with_jacobian"):
+        return camera.project_with_jacobian(points)
+    flat = points.reshape(-1, 3)
+    uv = camera.project(flat)
+    J = jax.vmap(jax.jacfwd(camera.project))(flat)
+    return uv.reshape(points.shape[:-1] + (2,)), J.reshape(points.shape[:-1] + (2, 3))
+
+
+class Geometry(eqx.Module):
+    """Every sighting of a cycle at given poses, in camera frames, with what its
+    Jacobian needs (all arrays; built by [`geometry`][]).
+
+    **Fields:** `R_body (steps, 3, 3, 3)`, `p_body (steps, 3, 3)` (the ground robots at
+    every step); `mutual_cam (steps, 3, 3, 3)`: robot `j`'s marker in robot `i`'s camera
+    frame `[k, i, j]` (diagonal a dummy); `mutual_body`: the same in robot `i`'s body
+    frame; `R_over (3, 3)`, `p_over (3,)`: the overhead camera; `over_cam (steps, 3, 3)`:
+    every marker in its frame; `markers (3, 3)`, `mount_R (3, 3, 3)`: the ground
+    robots' markers and camera mounts.
+    """
+
+    R_body: Float[Array, "steps 3 3 3"]
+    p_body: Float[Array, "steps 3 3"]
+    mutual_cam: Float[Array, "steps 3 3 3"]
+    mutual_body: Float[Array, "steps 3 3 3"]
+    R_over: Float[Array, "3 3"]
+    p_over: Float[Array, "3"]
+    over_cam: Float[Array, "steps 3 3"]
+    markers: Float[Array, "3 3"]
+    mount_R: Float[Array, "3 3 3"]
+
+
+def geometry(T_place, T_over, rig: Rig, strategy: str) -> Geometry:
+    """The sightings of a cycle whose placements are at `T_place` `(placements, 7)` and
+    whose overhead camera's optical frame is at `T_over` `(7,)` (`wxyz_xyz`, world `W`)."""
+    ids = placement_ids(strategy)
+    T_body = T_place[ids]  # (steps, 3, 7)
+    R, p = rotations(T_body), T_body[..., 4:]
+    dtype = T_place.dtype
+    mount_R = rig.mount_rotations()[1:].astype(dtype)
+    mount_t = rig.mount_translations()[1:].astype(dtype)
+    markers = rig.markers[1:].astype(dtype)
+    mutual_cam, mutual_body = mutual_points(R, p, mount_R, mount_t, markers)
+    R_over, p_over = rotations(T_over), T_over[4:]
+    x = matvec(R, markers) + p  # (steps, 3, 3): markers in W
+    over_cam = in_body(R_over, p_over, x)
+    return Geometry(R, p, mutual_cam, mutual_body, R_over, p_over, over_cam, markers, mount_R)
+
+
+def _by_observer(x):
+    """`(steps, 3, ...)` -> `(3, steps, ...)`: the observer axis first, for
+    `ground_cameras_apply`."""
+    return jnp.swapaxes(x, 0, 1)
+
+
+def _from_observer(x):
+    return jnp.swapaxes(x, 0, 1)
+
+
+def predict(T_place, T_over, rig: Rig, strategy: str):
+    """Noise-free measurements of a cycle at the given poses.
+
+    **Returns:** `(mutual (steps, 3, 3, 2) px, overhead (steps, 3, 2) px, lengths (moves,)
+    m)`: every mutual sighting in the observer's image (diagonal a finite dummy), every
+    overhead sighting in the overhead camera's image, and each move's straight-line
+    length between the mover's body origins.
+    """
+    g = geometry(T_place, T_over, rig, strategy)
+    mutual = _from_observer(
+        ground_cameras_apply(rig, lambda cam, x: cam.project(x), _by_observer(g.mutual_cam))
+    )
+    overhead = rig.overhead.project(g.over_cam)
+    return mutual, overhead, move_lengths(g.p_body, strategy)
+
+
+def move_lengths(p_body: Float[Array, "steps 3 3"], strategy: str) -> Float[Array, " moves"]:
+    """Straight-line length of each move between the mover's body origins (m)."""
+    starts, movers = move_start_step(strategy), moving_robot(strategy)
+    return safe_norm(p_body[starts + 1, movers] - p_body[starts, movers])
+
+
+def visible(
+    T_place, T_over, rig: Rig, strategy: str
+) -> tuple[Bool[Array, "steps 3 3"], Bool[Array, "steps 3"]]:
+    """Which sightings the cameras make at the given poses (`in_view`, as the simulator
+    decides): `(mutual (steps, 3, 3), overhead (steps, 3))`, diagonal False."""
+    g = geometry(T_place, T_over, rig, strategy)
+    mutual = _from_observer(
+        ground_cameras_apply(rig, lambda cam, x: cam.in_view(x), _by_observer(g.mutual_cam))
+    )
+    return mutual & ~np.eye(3, dtype=bool)[None], rig.overhead.in_view(g.over_cam)
+
+
+class CycleData(eqx.Module):
+    """Measurements of a cycle with their whitening weights (1 / sigma; 0 = unused).
+
+    **Fields:** `mutual_pixels` `(steps, 3, 3, 2)` px, `mutual_weight` `(steps, 3, 3)`
+    1/px, `overhead_pixels` `(steps, 3, 2)` px, `overhead_weight` `(steps, 3)` 1/px,
+    `odometry` `(moves,)` m, `odometry_weight` `(moves,)` 1/m. Unused entries hold 0.
+    """
+
+    mutual_pixels: Float[Array, "steps 3 3 2"]
+    mutual_weight: Float[Array, "steps 3 3"]
+    overhead_pixels: Float[Array, "steps 3 2"]
+    overhead_weight: Float[Array, "steps 3"]
+    odometry: Float[Array, " moves"]
+    odometry_weight: Float[Array, " moves"]
+
+    @property
+    def num_sightings(self) -> Array:
+        """Number of pixel sightings used (each two residuals)."""
+        return jnp.sum(self.mutual_weight > 0) + jnp.sum(self.overhead_weight > 0)
+
+    @property
+    def num_odometry(self) -> Array:
+        """Number of odometry distances used."""
+        return jnp.sum(self.odometry_weight > 0)
+
+
+def pixel_weights(rig: Rig, dtype) -> Float[Array, "4"]:
+    """`1 / sigma` per camera (C, C1, C2, C3) of each pixel coordinate (1/px)."""
+    sigma = jnp.maximum(rig.sigma_per_axis().astype(dtype), PIXEL_SIGMA_FLOOR)
+    return 1.0 / sigma
+
+
+def odometry_weight(distance, sigma):
+    """`1 / sigma` of each odometry distance, sigma floored at `ODOMETRY_SIGMA_FLOOR`
+    times the cycle's longest move (exact odometry of a noise-free simulation)."""
+    floor = 1e-9 + ODOMETRY_SIGMA_FLOOR * jnp.max(jnp.abs(distance))
+    return 1.0 / jnp.maximum(sigma, floor)
+
+
+def _pixels_from_bearings(observations: CycleObservations, rig: Rig):
+    """Pixels of the sightings that carry a bearing but no pixel (observations built from
+    bearings alone): each bearing projected through its camera, so that the refinement
+    weighs every sighting in its camera's image either way."""
+    dtype = observations.mutual.dtype
+    mount_R = rig.mount_rotations()[1:].astype(dtype)
+    b_cam = matvec_t(mount_R[None, :, None], observations.mutual)  # body -> camera frame
+    mutual = _from_observer(
+        ground_cameras_apply(rig, lambda cam, x: cam.project(x), _by_observer(b_cam))
+    )
+    return mutual, rig.overhead.project(observations.overhead)
+
+
+def cycle_data(observations: CycleObservations, rig: Rig) -> CycleData:
+    """Whitened measurement set of a cycle. A sighting is used when its pixel is finite,
+    or, failing that, its bearing (projected through its camera); non-finite pixels and
+    bearings, sightings marked not visible and the diagonal are missing data, left out.
+    Pixel sigma per camera and axis from the rig; odometry sigma from the observations."""
+    dtype = observations.mutual_pixels.dtype
+    w_px = pixel_weights(rig, dtype)
+    from_bearings = _pixels_from_bearings(observations, rig)
+    off_diagonal = ~np.eye(3, dtype=bool)[None]
+
+    def choose(pixels, bearings, derived, mask):
+        pixel_ok = jnp.all(jnp.isfinite(pixels), axis=-1)
+        bearing_ok = jnp.all(jnp.isfinite(bearings), axis=-1) & jnp.all(jnp.isfinite(derived), -1)
+        uv = jnp.where(pixel_ok[..., None], pixels, derived)
+        ok = mask & (pixel_ok | bearing_ok)
+        return jnp.where(ok[..., None], uv, 0.0), ok
+
+    mp, m_ok = choose(
+        observations.mutual_pixels, observations.mutual, from_bearings[0], off_diagonal
+    )
+    op, o_ok = choose(
+        observations.overhead_pixels, observations.overhead, from_bearings[1],
+        observations.overhead_visible,
+    )  # fmt: skip
+    d, sigma = observations.odometry, observations.odometry_sigma
+    d_ok = jnp.isfinite(d) & jnp.isfinite(sigma) & (d > 0) & (sigma >= 0)
+    d = jnp.where(d_ok, d, 0.0)
+    return CycleData(
+        mutual_pixels=mp,
+        mutual_weight=jnp.where(m_ok, w_px[None, 1:, None], 0.0),
+        overhead_pixels=op,
+        overhead_weight=jnp.where(o_ok, w_px[0], 0.0),
+        odometry=d,
+        odometry_weight=jnp.where(d_ok, odometry_weight(d, jnp.where(d_ok, sigma, 0.0)), 0.0),
+    )
+
+
+def unpack(theta, T0_place, T0_over):
+    """Poses from the tangent vector: placements 1, 2, ... then the overhead camera, each
+    `T0 exp(delta)`; placement 0 (C1 at the start) is the identity (the gauge)."""
+    n = T0_place.shape[0]
+    d = theta[:-6].reshape(n - 1, 6)
+    moved = jax.vmap(lambda t, dd: rplus(jaxlie.SE3(t), dd).wxyz_xyz)(
+        T0_place[1:], d
+    )
+    first = jnp.zeros((1, 7), T0_place.dtype).at[0, 0].set(1.0)
+    T_place = jnp.concatenate([first, moved.astype(T0_place.dtype)])
+    T_over = rplus(jaxlie.SE3(T0_over), theta[-6:]).wxyz_xyz
+    return T_place, T_over.astype(T0_over.dtype)
+
+
+def whitened(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """Whitened residuals `(m,)`: mutual pixels, overhead pixels, odometry."""
+    mutual, overhead, lengths = predict(T_place, T_over, rig, strategy)
+    r_m = data.mutual_weight[..., None] * (mutual - data.mutual_pixels)
+    r_o = data.overhead_weight[..., None] * (overhead - data.overhead_pixels)
+    r_d = data.odometry_weight * (lengths - data.odometry)
+    return jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
+
+
+def whitened_with_jacobian(
+    T_place: Float[Array, "placements 7"],
+    T_over: Float[Array, "7"],
+    data: CycleData,
+    rig: Rig,
+    strategy: str,
+):
+    """Whitened residuals and their Jacobian w.r.t. a right perturbation of every pose.
+
+    **Returns:** `(r, J)`: `r` as [`whitened`][] `(m,)`; `J` of shape `(m, placements + 1,
+    6)`: column block `p < placements` is placement `p`'s `delta = (v, omega)` in
+    `T_place[p] exp(delta)`, the last block the overhead camera's.
+    """
+    dtype = T_place.dtype
+    ids = placement_ids(strategy)
+    n = T_place.shape[0]
+    g = geometry(T_place, T_over, rig, strategy)
+    R = g.R_body
+    # Mutual sightings: pixels, and the two pose blocks through the camera's Jacobian.
+    uv, Jp = ground_cameras_apply(
+        rig, lambda cam, x: project_with_jacobian(cam, x), _by_observer(g.mutual_cam)
+    )
+    mutual, Jp = _from_observer(uv), _from_observer(Jp)  # (steps, i, j, 2), (.., 2, 3)
+    observer = matmul(Jp, observer_jacobian(g.mount_R[None, :, None], g.mutual_body))
+    Rt = jnp.swapaxes(R, -1, -2)
+    RiT_Rj = matmul(Rt[:, :, None], R[:, None, :])  # [k, i, j] = R_i^T R_j
+    A = matmul(jnp.swapaxes(g.mount_R, -1, -2)[None, :, None], RiT_Rj)
+    target = matmul(Jp, target_jacobian(A, g.markers[None, None, :, :]))
+    # Overhead sightings.
+    overhead, Jo = project_with_jacobian(rig.overhead, g.over_cam)
+    over_cam = matmul(Jo, camera_pose_jacobian(g.over_cam))
+    A_o = matmul(jnp.swapaxes(g.R_over, -1, -2)[None, None], R)
+    over_pt = matmul(Jo, target_jacobian(A_o, g.markers[None]))
+    # Odometry: the mover's body origin.
+    starts, movers = move_start_step(strategy), moving_robot(strategy)
+    step = g.p_body[starts + 1, movers] - g.p_body[starts, movers]
+    lengths = safe_norm(step)
+    u = step / jnp.where(lengths > 0, lengths, 1.0)[:, None]
+    u_end = jnp.sum(u[:, :, None] * R[starts + 1, movers], axis=-2)  # u^T R
+    u_start = -jnp.sum(u[:, :, None] * R[starts, movers], axis=-2)
+    zeros3 = jnp.zeros_like(u_end)
+
+    r_m = data.mutual_weight[..., None] * (mutual - data.mutual_pixels)
+    r_o = data.overhead_weight[..., None] * (overhead - data.overhead_pixels)
+    r_d = data.odometry_weight * (lengths - data.odometry)
+    r = jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
+
+    # Place the two-pose blocks in columns (rows, placements + 1, 6) with static masks
+    # (element-wise: XLA's CPU dot kernels are slow on these tiny batched shapes).
+    cols = np.arange(n + 1)
+    at = (ids[..., None] == cols).astype(np.float64)  # (steps, 3, n + 1)
+    w_m = data.mutual_weight[..., None, None, None]
+    J_m = w_m * (
+        jnp.asarray(at[:, :, None, None, :, None], dtype) * observer[..., None, :]
+        + jnp.asarray(at[:, None, :, None, :, None], dtype) * target[..., None, :]
+    )  # (steps, i, j, 2, n + 1, 6)
+    w_o = data.overhead_weight[..., None, None, None]
+    is_cam = (cols == n).astype(np.float64)
+    J_o = w_o * (
+        jnp.asarray(at[:, :, None, :, None], dtype) * over_pt[..., None, :]
+        + jnp.asarray(is_cam[None, None, None, :, None], dtype) * over_cam[..., None, :]
+    )  # (steps, j, 2, n + 1, 6)
+    at_end = (ids[starts + 1, movers][:, None] == cols).astype(np.float64)
+    at_start = (ids[starts, movers][:, None] == cols).astype(np.float64)
+    d_end = jnp.concatenate([u_end, zeros3], -1)[:, None, :]
+    d_start = jnp.concatenate([u_start, zeros3], -1)[:, None, :]
+    J_d = data.odometry_weight[:, None, None] * (
+        jnp.asarray(at_end[..., None], dtype) * d_end
+        + jnp.asarray(at_start[..., None], dtype) * d_start
+    )
+    J = jnp.concatenate([J_m.reshape(-1, n + 1, 6), J_o.reshape(-1, n + 1, 6), J_d], axis=0)
+    return r, J
+
+
+def flat_jacobian(J_local: Float[Array, "m p 6"]) -> Float[Array, "m n"]:
+    """Drop placement 0 (the gauge) from a [`whitened_with_jacobian`][] Jacobian and
+    flatten it to the tangent layout of [`unpack`][]: placements 1, 2, ..., overhead."""
+    return J_local[:, 1:].reshape(J_local.shape[0], -1)
+
+
+def residuals_and_jacobian(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """Whitened residuals `(m,)` and their Jacobian `(m, 6 * placements)` with respect to
+    the right perturbations of every placement but the gauge, then of the overhead
+    camera (the tangent layout of [`unpack`][])."""
+    r, J = whitened_with_jacobian(T_place, T_over, data, rig, strategy)
+    return r, flat_jacobian(J)
