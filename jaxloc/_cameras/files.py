@@ -200,7 +200,7 @@ def camera_from_dict(d: Any, where: str = "`camera`") -> AbstractCamera:
     if not isinstance(d, dict):
         raise ValueError(f"{where} must be a mapping; got {short(d)}.")
     model = d.get("model", "omni" if "xi" in d else "pinhole")
-    if model not in MODELS:
+    if not isinstance(model, str) or model not in MODELS:
         raise ValueError(f"{where}: `model` must be one of {MODELS}; got {short(model)}.")
     check_keys(d, CAMERA_KEYS[model] + INFO_KEYS, where=where, listed=CAMERA_KEYS[model])
     if d.get("fisheye_model", 0):
@@ -278,7 +278,7 @@ def camera_from_fields(d: dict, where: str) -> AbstractCamera:
     """Build a camera from its constructor-argument form (`{type: omni, xi: ..., fx: ...}`,
     see [`camera_fields`][]). Raises `ValueError` naming `where` and the field."""
     kind = d.get("type")
-    if kind not in _TYPES:
+    if not isinstance(kind, str) or kind not in _TYPES:
         raise ValueError(f"`{where}.type` must be one of {tuple(_TYPES)}; got {short(kind)}.")
     cls = _TYPES[kind]
     names = [f.name for f in dataclasses.fields(cls)]
@@ -480,10 +480,12 @@ def camera_from_kalibr(
         raise ValueError(f"{where} has no camera `{short_key(name, 40)}`; it has {sorted(d)}.")
     at = f"{where}, camera `{name}`"
     e = check_keys(d[name], KALIBR_KEYS, where=at)
-    for key in ("camera_model", "intrinsics", "distortion_model", "distortion_coeffs",
+    for key in ("camera_model", "distortion_model", "intrinsics", "distortion_coeffs",
                 "resolution"):  # fmt: skip
         if key not in e:
             raise ValueError(f"{at} is missing `{key}` (Kalibr requires it).")
+        if key == "distortion_model":
+            _check_kalibr_models(e["camera_model"], e["distortion_model"], at)
     _check_kalibr_extras(e, at, len(d))
     model, intr, coeffs = _kalibr_intrinsics(e, at)
     res = e["resolution"]
@@ -502,7 +504,6 @@ def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, list[float], list[float]]
     """Camera model, intrinsics and radtan coefficients (zeros for `none`) of a camchain
     entry, checked as Kalibr's `checkIntrinsics` and `checkDistortion` do."""
     model, dist_model = e["camera_model"], e["distortion_model"]
-    _check_kalibr_models(model, dist_model, at)
     intr = _numbers(f"{at}: `intrinsics`", e["intrinsics"], (5 if model == "omni" else 4,))
     xi, (fu, fv, pu, pv) = (intr[0], intr[1:]) if model == "omni" else (0.0, intr)
     if xi < 0:
@@ -521,18 +522,19 @@ def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, list[float], list[float]]
 
 
 def _check_kalibr_models(model: Any, dist_model: Any, at: str) -> None:
-    if model not in KALIBR_INTRINSICS:
-        raise ValueError(f"{at}: unknown `camera_model` {short(model)}; Kalibr's models are "
-                         f"{', '.join(KALIBR_INTRINSICS)}.")  # fmt: skip
-    if dist_model not in KALIBR_DISTORTIONS:
-        raise ValueError(f"{at}: unknown `distortion_model` {short(dist_model)}; Kalibr's "
-                         f"models are {', '.join(KALIBR_DISTORTIONS)}.")  # fmt: skip
+    """Kalibr's camera and distortion model names, and those jaxloc reads."""
+    if not isinstance(model, str) or model not in KALIBR_INTRINSICS:
+        raise ValueError(f"{at}: unknown `camera_model: {short_key(model, 40)}`; Kalibr's "
+                         f"models are {', '.join(KALIBR_INTRINSICS)}.")  # fmt: skip
+    if not isinstance(dist_model, str) or dist_model not in KALIBR_DISTORTIONS:
+        raise ValueError(f"{at}: unknown `distortion_model: {short_key(dist_model, 40)}`; "
+                         f"Kalibr's models are {', '.join(KALIBR_DISTORTIONS)}.")  # fmt: skip
     if model not in ("pinhole", "omni"):
-        raise ValueError(f"{at}: jaxloc has no `{model}` camera model (Kalibr's pinhole and "
-                         f"omni only).")  # fmt: skip
+        raise ValueError(f"{at}: `camera_model: {model}` is not supported by jaxloc (Kalibr's "
+                         "`pinhole` and `omni` are).")  # fmt: skip
     if dist_model not in ("radtan", "none"):
-        raise ValueError(f"{at}: jaxloc has no `{dist_model}` distortion model (Kalibr's "
-                         f"radtan and none only).")  # fmt: skip
+        raise ValueError(f"{at}: `distortion_model: {dist_model}` is not supported by jaxloc "
+                         "(Kalibr's `radtan` and `none` are).")  # fmt: skip
 
 
 def _check_kalibr_extras(e: dict, at: str, n_cameras: int) -> None:

@@ -113,7 +113,7 @@ class _StrictLoader(yaml.SafeLoader):
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
             raise yaml.YAMLError(
-                f"YAML aliases (`*{short(event.anchor, 40)}`) are not allowed in jaxloc's "
+                f"YAML aliases (`*{short_key(event.anchor, 40)}`) are not allowed in jaxloc's "
                 f"files (line {event.start_mark.line + 1}); write the value out"
             )
         return super().compose_node(parent, index)

@@ -21,7 +21,6 @@ are preserved to first order.
 """
 
 import dataclasses
-import json
 import math
 import os
 from typing import Any
@@ -33,6 +32,7 @@ import numpy as np
 
 from .._cameras.models import OmniCamera, PTZCamera
 from .._cameras.presets import R_BODY_OMNI, R_BODY_PTZ
+from .._core.files import atomic_write_json
 from .._core.poses import ypr_from_rotation
 from .._core.results import RESULTS, status_code, status_names
 from .._cycle.observations import CycleObservations, num_steps
@@ -389,12 +389,8 @@ def localize_images(
 
 
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
-    """Write `data` as JSON to `path` atomically (temporary file, then rename)."""
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, path)
+    """Write `data` as strict JSON to `path` atomically (see `jaxloc._core.files`)."""
+    atomic_write_json(path, data)
 
 
 def team_from_rendered(
