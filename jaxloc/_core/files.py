@@ -249,7 +249,7 @@ def naming_file(path: str | os.PathLike, what: str) -> Iterator[None]:
         raise
     except ValueError as e:
         text = str(e)
-        if f"`{path}`" not in text:
+        if path not in text:
             text = f"{_describe(path, what)}: {text}"
         raise FileFormatError(text) from None
 

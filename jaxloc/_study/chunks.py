@@ -138,7 +138,8 @@ _READ_ERRORS = (OSError, ValueError, EOFError, KeyError, MemoryError, struct.err
 
 
 def _load_npz(path: str) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as z:
+    # Our own file object: `np.load(path)` leaks its handle when the zip is damaged.
+    with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:
         return {k: z[k] for k in z.files}
 
 

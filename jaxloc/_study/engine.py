@@ -36,7 +36,7 @@ from .chunks import (
     write_chunk,
 )
 from .stats import StreamingSummary
-from .trial import METHODS, run_trial
+from .trial import METHODS, run_trial, TrialErrors
 
 
 FIELDS = (
@@ -204,7 +204,9 @@ def chunk_fields(
     `name -> (shape, dtype)`: what a chunk file must hold. Traces the chunk program
     (cached: a later compilation reuses the trace)."""
     lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
-    errors = lowered.lowered.out_info[0]
+    # The program's outputs, as equinox's jit lays them out (with its own extra leaves).
+    out = jax.tree.leaves(lowered.lowered.out_info, is_leaf=lambda x: isinstance(x, TrialErrors))
+    (errors,) = [x for x in out if isinstance(x, TrialErrors)]
     fields = {n: ((chunk_size, *getattr(errors, n).shape[1:]), np.dtype(getattr(errors, n).dtype))
               for n in FIELDS}  # fmt: skip
     fields["index"] = ((chunk_size,), np.dtype(np.int64))

@@ -54,6 +54,7 @@ from .._core.files import (
     load_mapping,
     naming_file,
     short,
+    short_key,
     syntax_of,
 )
 from .._cycle.observations import num_moves, num_steps, STRATEGIES
@@ -313,7 +314,7 @@ def _steps(steps: Any, base: str, w: str) -> list:
             for r, v in s.items():
                 if not isinstance(v, str) or not v:
                     raise ValueError(
-                        f"`{w}: steps[{k}].{short(r, 20)}` must be an image file name; got "
+                        f"`{w}: steps[{k}].{short_key(r, 20)}` must be an image file name; got "
                         f"{short(v)}."
                     )
             s = {r: os.path.join(base, v) for r, v in s.items()}
@@ -323,8 +324,8 @@ def _steps(steps: Any, base: str, w: str) -> list:
 
 def save_team(team: Team, path: str | os.PathLike, camera_files: dict[str, str] | None = None):
     """Write `team` as a team file at `path` (atomically), with its cameras as OpenCV YAML
-    files beside it (`camera_C.yaml`, ...; or the given `camera_files`) and its image
-    paths made relative to the file's folder."""
+    files beside it (`camera_C.yaml`, ...; or the given `camera_files`; the omni cameras'
+    elevation bands in them) and its image paths made relative to the file's folder."""
     path = os.fspath(path)
     base = os.path.dirname(os.path.abspath(path))
     robots: dict[str, Any] = {}
@@ -354,8 +355,5 @@ def _robot_to_dict(team: Team, r: str, camera_file: str) -> dict[str, Any]:
         }  # fmt: skip
     if r == "C1":
         e["pan"], e["tilt"] = float(team.pan), float(team.tilt)
-    if r in ("C2", "C3"):
-        c = team.cameras[r]
-        e["elevation_deg"] = [math.degrees(float(c.elevation_min)),
-                              math.degrees(float(c.elevation_max))]  # fmt: skip
+    # C2's and C3's elevation bands are in their camera files (exactly, in radians).
     return e
