@@ -89,8 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x6")
     p.add_argument("--square", type=float, required=True, metavar="METRES")
     p.add_argument("--out", default="camera.yaml", metavar="FILE", help="camera file to write")
-    p.add_argument("--format", choices=("opencv", "json", "kalibr"), default=None,
-                   help="camera file format (default: from the suffix; OpenCV YAML)")  # fmt: skip
+    p.add_argument("--format", choices=("opencv", "json", "yaml", "kalibr"), default=None,
+                   help="camera file format (default: json for .json, else opencv)")  # fmt: skip
     p.add_argument("--fix-aspect-ratio", action="store_true", help="pinhole: fx = fy")
     p.add_argument("--fix-k3", action="store_true", help="pinhole: k3 = 0 (Kalibr radtan)")
     p.add_argument("--window", type=int, default=None, help="cornerSubPix half window (px)")
