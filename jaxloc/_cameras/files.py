@@ -171,8 +171,7 @@ def camera_to_dict(camera: AbstractCamera) -> dict[str, Any]:
     w, h = camera.image_size
     d: dict[str, Any] = {"model": model, "image_width": int(w), "image_height": int(h)}
     if model == "pinhole":
-        K, dist, _ = camera.to_opencv()
-        d["camera_matrix"] = K.tolist()
+        d["camera_matrix"] = camera.to_opencv()[0].tolist()
     elif model == "omni":
         fx, fy, cx, cy, skew = (float(camera.fx), float(camera.fy), float(camera.cx),
                                 float(camera.cy), float(camera.skew))  # fmt: skip
@@ -504,7 +503,8 @@ def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, list[float], list[float]]
     """Camera model, intrinsics and radtan coefficients (zeros for `none`) of a camchain
     entry, checked as Kalibr's `checkIntrinsics` and `checkDistortion` do."""
     model, dist_model = e["camera_model"], e["distortion_model"]
-    intr = _numbers(f"{at}: `intrinsics`", e["intrinsics"], (5 if model == "omni" else 4,))
+    layout = KALIBR_INTRINSICS[model]
+    intr = _numbers(f"{at}: `intrinsics` {layout}", e["intrinsics"], (layout.count(",") + 1,))
     xi, (fu, fv, pu, pv) = (intr[0], intr[1:]) if model == "omni" else (0.0, intr)
     if xi < 0:
         raise ValueError(f"{at}: `intrinsics` xi must be >= 0; got {xi!r}.")

@@ -16,8 +16,9 @@ EXIT_CODES_HELP = """\
 exit codes:
   0    success
   1    the run finished but found no valid result: every trial of a study failed
-       (simulate, table1), no feasible formation (design), or the localization's
-       status is not successful (localize); the outputs asked for are still written
+       (simulate, table1), no feasible formation (design: its report is written,
+       no scenario file), or the localization's status is not successful
+       (localize: its poses file is written)
   2    bad input: an argument, or a file that cannot be read, parsed or written
        (one line on stderr names it)
   130  interrupted (Ctrl-C); a study run with --out DIR resumes when the same

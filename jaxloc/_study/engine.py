@@ -238,8 +238,9 @@ def _study_chunks(
     read back from `out_dir` when a previous run wrote them and they pass the checks of
     `jaxloc._study.chunks`)."""
     methods = _check_study_args(n_trials, chunk_size, methods, seed)
-    manifest = study_manifest(scenario_to_dict(scenario), seed, chunk_size, methods)
-    if out_dir is not None:
+    manifest = None
+    if out_dir is not None:  # only a study on disk needs the scenario's file form
+        manifest = study_manifest(scenario_to_dict(scenario), seed, chunk_size, methods)
         open_study(out_dir, manifest)
     expected = None
     bar = _progress(progress, n_trials)
