@@ -13,6 +13,7 @@ from ._cameras.files import (
     camera_to_dict as camera_to_dict,
     camera_to_kalibr as camera_to_kalibr,
     load_camera as load_camera,
+    save_camchain as save_camchain,
     save_camera as save_camera,
 )
 from ._cameras.models import (

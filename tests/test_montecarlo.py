@@ -1,4 +1,3 @@
-import json
 import os
 import subprocess
 import sys
@@ -9,7 +8,6 @@ import jax.monitoring
 import jaxloc
 import numpy as np
 import pytest
-from jaxloc._cli.main import main
 
 
 N = 96
@@ -201,90 +199,6 @@ def test_bad_arguments_are_rejected(scenario):
         jaxloc.run_study(scenario, 10, methods=("magic",))
 
 
-def test_cli_simulate_round_trips_a_scenario_file(scenario, reference, tmp_path, capsys):
-    path = str(tmp_path / "scenario.yaml")
-    jaxloc.save_scenario(scenario, path)
-    out = str(tmp_path / "report.json")
-    code = main(
-        [
-            "simulate",
-            "--scenario",
-            path,
-            "--trials",
-            str(N),
-            "--seed",
-            str(SEED),
-            "--chunk-size",
-            "32",
-            "--json",
-            out,
-            "--no-progress",
-            "--methods",
-            ",".join(METHODS),
-        ]
-    )
-    assert code == 0
-    text = capsys.readouterr().out
-    assert "Sequential strategy" in text and "Position error (cm" in text
-    with open(out) as f:
-        report = json.load(f)
-    summary = report["strategies"]["sequential"]
-    expected = jaxloc.summarize(reference, METHODS)
-    assert summary["methods"]["robust"]["cameras"]["C"]["position_m"] == pytest.approx(
-        expected["methods"]["robust"]["cameras"]["C"]["position_m"]
-    )
-    streamed = str(tmp_path / "streamed.json")
-    args = ["simulate", "--scenario", path, "--trials", str(N), "--seed", str(SEED)]
-    args += ["--chunk-size", "32", "--no-progress", "--methods", ",".join(METHODS)]
-    assert main(args + ["--stream", "--json", streamed]) == 0
-    with open(streamed) as f:
-        got = json.load(f)["strategies"]["sequential"]["methods"]["robust"]["cameras"]["C"]
-    want = expected["methods"]["robust"]["cameras"]["C"]["position_m"]
-    assert got["position_m"]["rmse"] == pytest.approx(want["rmse"], rel=1e-12)
-    robust = METHODS.index("robust")
-    values = reference["position"][reference["status"][:, robust] == 0, robust, 0]
-    assert got["position_m"]["median"] == pytest.approx(_lower_percentile(values, 50), rel=0.012)
-    assert main(args + ["--stream", "--plot", str(tmp_path / "p.png")]) == 2
-
-
-def test_cli_table1_runs_both_studies_and_prints_them_in_order(reference, tmp_path, capsys):
-    # The sequential program compiles first and its study runs while the concurrent one
-    # compiles; the tables still print concurrent first, and the numbers are the studies'.
-    out = str(tmp_path / "table1.json")
-    args = ["table1", "--trials", str(N), "--seed", str(SEED), "--chunk-size", "32"]
-    args += ["--methods", ",".join(METHODS), "--no-progress", "--json", out]
-    assert main(args) == 0
-    text = capsys.readouterr().out
-    assert text.index("Concurrent strategy") < text.index("Sequential strategy")
-    assert "until the last was compiled" in text
-    with open(out) as f:
-        report = json.load(f)
-    assert list(report["strategies"]) == ["concurrent", "sequential"]
-    assert report["compile_seconds"] > 0
-    expected = jaxloc.summarize(reference, METHODS)["methods"]
-    got = report["strategies"]["sequential"]["methods"]
-    for method in METHODS:
-        assert got[method]["n_ok"] == expected[method]["n_ok"]
-        for camera in ("C", "C2"):
-            assert got[method]["cameras"][camera]["position_m"] == pytest.approx(
-                expected[method]["cameras"][camera]["position_m"]
-            )
-    concurrent = report["strategies"]["concurrent"]["methods"]["robust"]
-    assert concurrent["n_ok"] > 0.9 * N
-
-
-def test_cli_rejects_bad_input(tmp_path, capsys):
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("strategy: sideways\n")
-    assert main(["simulate", "--scenario", str(bad), "--trials", "4"]) == 2
-    assert "sideways" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        main(["table1", "--trials", "0"])
-    with pytest.raises(SystemExit):
-        main(["table1", "--chunk-size", "0"])
-    assert "--chunk-size must be positive; got 0" in capsys.readouterr().err
-
-
 @pytest.mark.parametrize("n_trials", [1, 100, 4096, 4097, 10_000, 1_000_000])
 def test_balanced_chunk_size_covers_the_trials_with_little_padding(n_trials):
     quantum = jaxloc.MICRO_BATCH * jax.device_count()
@@ -296,12 +210,6 @@ def test_balanced_chunk_size_covers_the_trials_with_little_padding(n_trials):
     assert jaxloc.balanced_chunk_size(n_trials, 10) == 10  # below one quantum: as asked
     with pytest.raises(ValueError, match="max_chunk_size"):
         jaxloc.balanced_chunk_size(n_trials, 0)
-
-
-def test_cli_cameras(capsys):
-    assert main(["cameras"]) == 0
-    text = capsys.readouterr().out
-    assert "52.0" in text and "85.0" in text and "15.0" in text
 
 
 @pytest.mark.timeout(900)
@@ -327,22 +235,6 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
     with np.load(out) as z:
         multi = {k: z[k] for k in z.files}
     _same(reference, multi)
-
-
-def test_command_line_uses_every_core_as_a_device():
-    script = (
-        "import jax, os; from jaxloc._cli.main import _use_every_core; n = _use_every_core(); "
-        "assert n == len(os.sched_getaffinity(0)) == jax.device_count(), (n, jax.devices())"
-    )
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
-    # An explicit XLA_FLAGS device count is left alone.
-    script = (
-        "import jax; from jaxloc._cli.main import _use_every_core; "
-        "assert _use_every_core() is None and jax.device_count() == 3"
-    )
-    env["XLA_FLAGS"] = "--xla_force_host_platform_device_count=3"
-    subprocess.run([sys.executable, "-c", script], check=True, timeout=120, env=env)
 
 
 @pytest.mark.slow

@@ -93,8 +93,12 @@ cameras:
     ref = Scenario.paper("concurrent", ground=FlatSurface(0.0), ceiling=FlatSurface(3.0),
                          ptz=paper_ptz_camera(pan=0.25))
     assert bool(eqx.tree_equal(s, ref))
+    # An empty file is an error (issue 17 case 6); `{}` asks for the defaults.
     (tmp_path / "empty.yaml").write_text("")
-    assert bool(eqx.tree_equal(load_scenario(tmp_path / "empty.yaml"), Scenario.paper()))
+    with pytest.raises(ValueError, match="empty.yaml` is empty"):
+        load_scenario(tmp_path / "empty.yaml")
+    (tmp_path / "defaults.yaml").write_text("{}\n")
+    assert bool(eqx.tree_equal(load_scenario(tmp_path / "defaults.yaml"), Scenario.paper()))
 
 
 def _set(d, path, value):
@@ -137,12 +141,16 @@ BAD = [
     ("move_candidates", 0, r"`move_candidates` must be a positive integer; got 0"),
     ("move_candidates", 2.5, r"`move_candidates` must be a positive integer; got 2.5"),
     ("require_ptz", "yes", r"`require_ptz` must be true or false; got 'yes'"),
-    ("cameras.ptz", "paper_omni", r"`cameras.ptz.type` must be 'ptz' for the `ptz` camera"),
+    ("cameras.ptz", "paper_omni", r"`cameras.ptz` must be a camera with `model: ptz` for the "
+     r"`ptz` slot; got `model: omni`"),
     ("cameras.ptz", "wide_angle", r"`cameras.ptz.preset` must be one of .*'wide_angle'"),
     ("cameras.overhead.type", "fisheye", r"`cameras.overhead.type` must be one of .*fisheye"),
-    ("cameras.overhead.fx", -600.0, r"`cameras.overhead` is invalid: .*fx.*-600"),
-    ("cameras.overhead.dist", [0.0, 1.0], r"`cameras.overhead` is invalid: .*dist"),
-    ("cameras.overhead.image_size", [640], r"`cameras.overhead.image_size` must be two"),
+    ("cameras.overhead.camera_matrix", [[-600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0, 0, 1]],
+     r"`cameras.overhead` is invalid: .*fx.*-600"),
+    ("cameras.overhead.distortion_coefficients", [0.0, 1.0],
+     r"`cameras.overhead`: `distortion_coefficients` must be a list of 4 or 5 numbers"),
+    ("cameras.overhead.image_width", [640], r"`cameras.overhead`: `image_width` must be a "
+     r"positive integer"),
     ("cameras.ptz.zoom", 1.5, r"`cameras.ptz` is invalid: .*zoom.*1.5"),
     ("cameras.omni3", 3, r"`cameras.omni3` must be a preset name or a mapping; got 3"),
     ("moves", [[0.8, 0.0], [0.8, 0.0]], r"`Scenario\(moves=...\)` must have shape \(3, 2\) "

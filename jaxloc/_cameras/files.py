@@ -1,172 +1,620 @@
-r"""Camera files: OpenCV calibration YAML (`cv::FileStorage`: `camera_matrix`,
-`distortion_coefficients`, `xi`, `image_width`, `image_height`), JSON with the same keys,
-and Kalibr camchain YAML (`camera_model: pinhole | omni`, `distortion_model: radtan`);
-[`jaxloc.save_camera`][], [`jaxloc.load_camera`][].
+r"""Camera files and jaxloc's one camera dict format.
+
+**The camera dict** ([`jaxloc.camera_to_dict`][] / [`jaxloc.camera_from_dict`][]) is the
+only form in which jaxloc writes a camera: in camera JSON/YAML files and in the `cameras:`
+entries of scenario files. Its keys follow OpenCV's calibration files, plus what OpenCV
+has no key for (SI units: pixels, radians):
+
+```yaml
+model: pinhole                  # pinhole | omni | ptz
+image_width: 640
+image_height: 480
+camera_matrix: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]     # omni: [[fx, skew, cx], ...]
+distortion_coefficients: [k1, k2, p1, p2, k3]             # omni: [k1, k2, p1, p2]
+# omni only:  xi: 0.9, elevation_min: -0.2094, elevation_max: 0.5585   (rad)
+# ptz: no camera_matrix; pan, tilt, zoom, hfov_wide, hfov_tele (rad; zoom in [0, 1])
+```
+
+`distortion_coefficients` may be omitted (no distortion), and so may every ptz key but
+the image size and omni's elevation band (the constructors' defaults). Without `model`
+the camera is `omni` if it has `xi`, else `pinhole`. Informational keys written by
+calibration tools (`INFO_KEYS`: jaxloc's `rms_px`, `num_images`; OpenCV's
+`avg_reprojection_error`, `flags`, `extrinsic_parameters`, ...) are read and ignored;
+any other key is an error naming it and the file.
+
+**Camera files** ([`jaxloc.save_camera`][], [`jaxloc.load_camera`][]):
+
+- `json` / `yaml`: the camera dict.
+- `opencv`: `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`), the same keys: what
+  `cv2.calibrateCamera` users write. A PTZ camera is written as its pinhole at the
+  current zoom. Read from files that OpenCV's calibration samples write, too.
+- `kalibr`: a Kalibr camchain (`cam0`, `cam1`, ...; `camera_model: pinhole | omni`,
+  `distortion_model: radtan | none`), import and export only. Read with the rules of
+  Kalibr's own reader (`kalibr_common/ConfigReader.py`): cameras named `cam0` ...
+  `cam<n-1>`, intrinsics and coefficient counts per model, resolution two integers,
+  `rostopic` a string, `T_cn_cnm1` a 4x4 rigid transform. Written with a `rostopic` for
+  every camera and `T_cn_cnm1` for every camera after the first
+  ([`jaxloc.save_camchain`][]). Kalibr's other models (`equidistant`, `fov`, `eucm`,
+  `ds`) are refused, naming the model, the camera and the file.
+
+A scenario file's `cameras:` entries are read by [`camera_from_spec`][]: a camera dict, a
+preset name (`paper_overhead`, `paper_ptz`, `paper_omni`), a preset with overrides
+(`{preset: paper_ptz, pan: 0.1}`), or the form scenario files had before the camera dict
+(`{type: pinhole, fx: ..., fy: ..., cx: ..., cy: ..., dist: [...], image_size: [w, h]}`:
+the constructor's arguments), still read for compatibility.
 """
 
-import json
+import dataclasses
+import math
 import os
-import tempfile
+import re
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 
+from .._core.files import (
+    atomic_write,
+    check_keys,
+    dumps_json,
+    dumps_yaml,
+    FileFormatError,
+    naming_file,
+    parse_mapping,
+    read_text,
+    short,
+    short_key,
+    syntax_of,
+)
 from .models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera
+from .presets import paper_omni_camera, paper_overhead_camera, paper_ptz_camera
 
 
-FORMATS = ("opencv", "json", "kalibr")
+FORMATS = ("opencv", "json", "yaml", "kalibr")
+MODELS = ("pinhole", "omni", "ptz")
+_SIZE_KEYS = ("model", "image_width", "image_height")
+#: The keys of the camera dict of each model (see the module docstring).
+CAMERA_KEYS = {
+    "pinhole": _SIZE_KEYS + ("camera_matrix", "distortion_coefficients"),
+    "omni": _SIZE_KEYS
+    + ("camera_matrix", "distortion_coefficients", "xi", "elevation_min", "elevation_max"),
+    "ptz": _SIZE_KEYS + ("distortion_coefficients", "pan", "tilt", "zoom", "hfov_wide",
+                         "hfov_tele"),
+}  # fmt: skip
+#: Informational keys a camera file may carry, read and ignored: jaxloc's calibration
+#: report (`rms_px`, `num_images`) and what OpenCV's calibration samples write beside
+#: the camera (`fisheye_model` must be 0: jaxloc has no OpenCV fisheye model).
+INFO_KEYS = (
+    "rms_px", "num_images", "calibration_time", "nframes", "nr_of_frames", "board_width",
+    "board_height", "square_size", "marker_size", "aspectRatio", "fix_aspect_ratio",
+    "flags", "fisheye_model", "avg_reprojection_error", "per_view_reprojection_errors",
+    "extrinsic_parameters", "image_points", "grid_points",
+)  # fmt: skip
+CAMERA_PRESETS = {
+    "paper_overhead": paper_overhead_camera,
+    "paper_ptz": paper_ptz_camera,
+    "paper_omni": paper_omni_camera,
+}
+_TYPES = {"pinhole": PinholeCamera, "ptz": PTZCamera, "omni": OmniCamera}
 
 
-def camera_to_dict(camera: AbstractCamera) -> dict[str, Any]:
-    """OpenCV-style dict of a camera: `model` (`pinhole` or `omni`), `image_width`,
-    `image_height`, `camera_matrix` (3x3 nested list), `distortion_coefficients`
-    (pinhole: k1, k2, p1, p2, k3; omni: k1, k2, p1, p2), and `xi` for omni. A
-    [`jaxloc.PTZCamera`][] is written as its pinhole at the current zoom."""
-    if isinstance(camera, PTZCamera):
-        camera = camera.pinhole()
-    if isinstance(camera, PinholeCamera):
-        K, dist, (w, h) = camera.to_opencv()
-        return {"model": "pinhole", "image_width": w, "image_height": h,
-                "camera_matrix": K.tolist(), "distortion_coefficients": dist.tolist()}  # fmt: skip
-    if isinstance(camera, OmniCamera):
-        K = np.array([[float(camera.fx), float(camera.skew), float(camera.cx)],
-                      [0.0, float(camera.fy), float(camera.cy)], [0.0, 0.0, 1.0]])  # fmt: skip
-        w, h = camera.image_size
-        return {"model": "omni", "image_width": w, "image_height": h, "camera_matrix": K.tolist(),
-                "distortion_coefficients": np.asarray(camera.dist, np.float64).tolist(),
-                "xi": float(camera.xi)}  # fmt: skip
+def model_of(camera: AbstractCamera) -> str:
+    """`"pinhole"`, `"omni"` or `"ptz"`: the `model` of `camera` in its camera dict."""
+    for name, cls in _TYPES.items():
+        if type(camera) is cls:
+            return name
     raise ValueError(
-        f"`camera` must be a PinholeCamera, PTZCamera or OmniCamera; got {type(camera).__name__}."
+        f"`camera` must be a PinholeCamera, PTZCamera or OmniCamera; got "
+        f"{type(camera).__name__}."
     )
 
 
-def camera_from_dict(d: Any, where: str = "camera") -> AbstractCamera:
-    """Inverse of [`jaxloc.camera_to_dict`][]; also accepts `K`/`D`/`dist` as key
-    aliases and a missing `model` (omni if `xi` is present). Raises `ValueError` naming
-    the bad field."""
+# --------------------------------------------------------------------------------------
+# Values.
+
+
+def _number(where: str, x: Any) -> float:
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        raise ValueError(f"{where} must be a number; got {short(x)}.")
+    if not math.isfinite(x):
+        raise ValueError(f"{where} must be finite; got {short(x)}.")
+    return float(x)
+
+
+def _numbers(where: str, x: Any, counts: Sequence[int]) -> list[float]:
+    """A flat list of finite numbers of one of the lengths `counts` (an OpenCV column or
+    row matrix is flattened)."""
+    if isinstance(x, np.ndarray) and x.ndim == 2 and 1 in x.shape:
+        x = x.reshape(-1).tolist()
+    elif isinstance(x, list) and x and all(isinstance(r, list) and len(r) == 1 for r in x):
+        x = [r[0] for r in x]  # a column written as nested lists
+    elif isinstance(x, list) and len(x) == 1 and isinstance(x[0], list):
+        x = x[0]  # a row written as nested lists
+    if isinstance(x, np.ndarray):
+        x = x.tolist()
+    want = " or ".join(str(n) for n in counts)
+    if not isinstance(x, list | tuple) or len(x) not in counts:
+        raise ValueError(f"{where} must be a list of {want} numbers; got {short(x)}.")
+    return [_number(f"{where}[{i}]", v) for i, v in enumerate(x)]
+
+
+def _matrix3(where: str, x: Any) -> np.ndarray:
+    rows = x.tolist() if isinstance(x, np.ndarray) else x
+    if isinstance(rows, list) and len(rows) == 9 and not any(isinstance(r, list) for r in rows):
+        rows = [rows[0:3], rows[3:6], rows[6:9]]
+    if not isinstance(rows, list) or len(rows) != 3:
+        raise ValueError(f"{where} must be a 3x3 matrix (three rows of three numbers); got "
+                         f"{short(x)}.")  # fmt: skip
+    return np.array([_numbers(f"{where}[{i}]", r, (3,)) for i, r in enumerate(rows)])
+
+
+def _size(where: str, x: Any) -> int:
+    if isinstance(x, np.integer):
+        x = int(x)
+    if isinstance(x, bool) or not isinstance(x, int) or x <= 0:
+        raise ValueError(f"{where} must be a positive integer (pixels); got {short(x)}.")
+    return x
+
+
+# --------------------------------------------------------------------------------------
+# The camera dict.
+
+
+def camera_to_dict(camera: AbstractCamera) -> dict[str, Any]:
+    """The camera dict of `camera` (see the module docstring): plain Python values,
+    ready for JSON or YAML; [`jaxloc.camera_from_dict`][] reads it back exactly
+    (float64; a float32 camera is written as the float64 values of its leaves)."""
+    model = model_of(camera)
+    w, h = camera.image_size
+    d: dict[str, Any] = {"model": model, "image_width": int(w), "image_height": int(h)}
+    if model == "pinhole":
+        d["camera_matrix"] = camera.to_opencv()[0].tolist()
+    elif model == "omni":
+        fx, fy, cx, cy, skew = (float(camera.fx), float(camera.fy), float(camera.cx),
+                                float(camera.cy), float(camera.skew))  # fmt: skip
+        d["camera_matrix"] = [[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
+    dist = np.asarray(camera.dist, np.float64)
+    d["distortion_coefficients"] = dist.tolist()
+    names = {"omni": ("xi", "elevation_min", "elevation_max"),
+             "ptz": ("pan", "tilt", "zoom", "hfov_wide", "hfov_tele")}.get(model, ())  # fmt: skip
+    for name in names:
+        d[name] = float(getattr(camera, name))
+    return d
+
+
+def camera_from_dict(d: Any, where: str = "`camera`") -> AbstractCamera:
+    """Build a camera from its camera dict (see the module docstring).
+
+    **Arguments:**
+
+    - `d`: the mapping.
+    - `where`: how messages name it, verbatim (e.g. ``"camera file `cam.json`"``).
+
+    Raises `ValueError` naming `where`, the key and the bad value (bounded): an unknown
+    key, a missing one, a wrong type, or a value the camera's constructor refuses.
+    """
     if not isinstance(d, dict):
-        raise ValueError(f"`{where}` must be a mapping; got {type(d).__name__}.")
-
-    def get(*keys, required=True):
-        for k in keys:
-            if k in d:
-                return d[k]
-        if required:
-            raise ValueError(f"`{where}` is missing `{keys[0]}`.")
-        return None
-
+        raise ValueError(f"{where} must be a mapping; got {short(d)}.")
     model = d.get("model", "omni" if "xi" in d else "pinhole")
-    if model not in ("pinhole", "omni"):
-        raise ValueError(f"`{where}.model` must be 'pinhole' or 'omni'; got {model!r}.")
+    if not isinstance(model, str) or model not in MODELS:
+        raise ValueError(f"{where}: `model` must be one of {MODELS}; got {short(model)}.")
+    check_keys(d, CAMERA_KEYS[model] + INFO_KEYS, where=where, listed=CAMERA_KEYS[model])
+    if d.get("fisheye_model", 0):
+        raise ValueError(
+            f"{where} is an OpenCV fisheye calibration (`fisheye_model: "
+            f"{short(d['fisheye_model'])}`); jaxloc has no fisheye (equidistant) model yet."
+        )
+    for key in ("image_width", "image_height") + (("xi",) if model == "omni" else ()):
+        if key not in d:
+            raise ValueError(f"{where} is missing `{key}`.")
+    size = (_size(f"{where}: `image_width`", d["image_width"]),
+            _size(f"{where}: `image_height`", d["image_height"]))  # fmt: skip
+    build = {"pinhole": _pinhole_from_dict, "omni": _omni_from_dict, "ptz": _ptz_from_dict}
     try:
-        K = np.asarray(get("camera_matrix", "K"), dtype=np.float64).reshape(3, 3)
-    except (TypeError, ValueError) as e:
-        raise ValueError(f"`{where}.camera_matrix` must be a 3x3 matrix of numbers: {e}") from None
-    dist = get("distortion_coefficients", "dist", "D", required=False)
-    w = get("image_width")
-    h = get("image_height")
-    for name, v in (("image_width", w), ("image_height", h)):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v <= 0:
-            raise ValueError(f"`{where}.{name}` must be a positive integer; got {v!r}.")
-    try:
-        if model == "pinhole":
-            return PinholeCamera.from_opencv(K, dist, (int(w), int(h)))
-        xi = get("xi")
-        D = np.zeros(4) if dist is None else np.asarray(dist, np.float64).ravel()
-        return OmniCamera.from_opencv(K, D, xi, (int(w), int(h)))
+        return build[model](d, size, where)
     except ValueError as e:
+        if str(e).startswith(where):
+            raise
+        raise ValueError(f"{where} is invalid: {e}") from None
+
+
+def _dist(d: dict, where: str, counts: tuple[int, ...]) -> list[float] | None:
+    v = d.get("distortion_coefficients")
+    return None if v is None else _numbers(f"{where}: `distortion_coefficients`", v, counts)
+
+
+def _camera_matrix(d: dict, where: str) -> np.ndarray:
+    if "camera_matrix" not in d:
+        raise ValueError(f"{where} is missing `camera_matrix`.")
+    return _matrix3(f"{where}: `camera_matrix`", d["camera_matrix"])
+
+
+def _pinhole_from_dict(d: dict, size: tuple[int, int], where: str) -> PinholeCamera:
+    K = _camera_matrix(d, where)
+    return PinholeCamera.from_opencv(K, _dist(d, where, (4, 5)), size)
+
+
+def _omni_from_dict(d: dict, size: tuple[int, int], where: str) -> OmniCamera:
+    K = _camera_matrix(d, where)
+    if K[1, 0] != 0 or K[2].tolist() != [0.0, 0.0, 1.0]:
+        raise ValueError(
+            f"{where}: `camera_matrix` must be [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]; got "
+            f"{np.array2string(K)}."
+        )
+    dist = _dist(d, where, (4,)) or [0.0] * 4
+    band = {k: _number(f"{where}: `{k}`", d[k]) for k in ("elevation_min", "elevation_max")
+            if k in d}  # fmt: skip
+    return OmniCamera.from_opencv(K, dist, _number(f"{where}: `xi`", d["xi"]), size, **band)
+
+
+def _ptz_from_dict(d: dict, size: tuple[int, int], where: str) -> PTZCamera:
+    names = ("pan", "tilt", "zoom", "hfov_wide", "hfov_tele")
+    kwargs: dict[str, Any] = {k: _number(f"{where}: `{k}`", d[k]) for k in names if k in d}
+    dist = _dist(d, where, (4, 5))
+    if dist is not None:
+        kwargs["dist"] = dist + [0.0] * (5 - len(dist))
+    return PTZCamera(image_size=size, **kwargs)
+
+
+# --------------------------------------------------------------------------------------
+# Scenario-file camera entries: presets and the constructor-argument form.
+
+
+def camera_fields(camera: AbstractCamera) -> dict[str, Any]:
+    """The constructor-argument form of `camera` (`{type: pinhole, fx: ..., ...}`), which
+    scenario files used before the camera dict; kept to apply presets' overrides."""
+    d: dict[str, Any] = {"type": model_of(camera)}
+    for f in dataclasses.fields(camera):
+        v = getattr(camera, f.name)
+        d[f.name] = list(v) if isinstance(v, tuple) else np.asarray(v, np.float64).tolist()
+    return d
+
+
+def camera_from_fields(d: dict, where: str) -> AbstractCamera:
+    """Build a camera from its constructor-argument form (`{type: omni, xi: ..., fx: ...}`,
+    see [`camera_fields`][]). Raises `ValueError` naming `where` and the field."""
+    kind = d.get("type")
+    if not isinstance(kind, str) or kind not in _TYPES:
+        raise ValueError(f"`{where}.type` must be one of {tuple(_TYPES)}; got {short(kind)}.")
+    cls = _TYPES[kind]
+    names = [f.name for f in dataclasses.fields(cls)]
+    check_keys(d, set(names) | {"type"}, where=f"`{where}`")
+    kwargs: dict[str, Any] = {}
+    for k, v in d.items():
+        if k == "image_size":
+            ok = isinstance(v, list | tuple) and len(v) == 2
+            if not ok or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0
+                                 for n in v):  # fmt: skip
+                raise ValueError(f"`{where}.image_size` must be two positive integers "
+                                 f"[width, height]; got {short(v)}.")  # fmt: skip
+            kwargs[k] = (int(v[0]), int(v[1]))
+        elif k != "type":
+            kwargs[k] = (_numbers(f"`{where}.{k}`", v, (len(v),)) if isinstance(v, list | tuple)
+                         else _number(f"`{where}.{k}`", v))  # fmt: skip
+    try:
+        return cls(**kwargs)
+    except (ValueError, TypeError) as e:
         raise ValueError(f"`{where}` is invalid: {e}") from None
 
 
-def camera_to_kalibr(camera: AbstractCamera, name: str = "cam0") -> dict[str, Any]:
+def _from_preset(d: dict, where: str) -> AbstractCamera:
+    name = d["preset"]
+    if not isinstance(name, str) or name not in CAMERA_PRESETS:
+        raise ValueError(
+            f"`{where}.preset` must be one of {tuple(CAMERA_PRESETS)}; got {short(name)}."
+        )
+    camera = CAMERA_PRESETS[name]()
+    overrides = {k: v for k, v in d.items() if k != "preset"}
+    base = camera_to_dict(camera)
+    if set(overrides) <= set(CAMERA_KEYS[base["model"]]):
+        return camera_from_dict({**base, **overrides}, where=f"`{where}`")
+    return camera_from_fields({**camera_fields(camera), **overrides}, where)
+
+
+def camera_from_spec(spec: Any, where: str) -> AbstractCamera:
+    """A camera from a scenario file's camera entry: a camera dict (with `model`), a
+    preset name, `{preset: <name>, <key>: <override>, ...}` (overrides in either form),
+    or the constructor-argument form (with `type`). Raises `ValueError` naming `where`."""
+    if isinstance(spec, str):
+        spec = {"preset": spec}
+    if not isinstance(spec, dict):
+        raise ValueError(f"`{where}` must be a preset name or a mapping; got {short(spec)}.")
+    if "preset" in spec:
+        return _from_preset(spec, where)
+    if "type" in spec:
+        return camera_from_fields(spec, where)
+    return camera_from_dict(spec, where=f"`{where}`")
+
+
+# --------------------------------------------------------------------------------------
+# Kalibr camchains.
+
+#: Keys of a camera in a Kalibr camchain (Kalibr's `CameraParameters` and
+#: `CameraChainParameters`); jaxloc reads the intrinsics and checks the rest.
+KALIBR_KEYS = (
+    "camera_model", "intrinsics", "distortion_model", "distortion_coeffs", "resolution",
+    "rostopic", "T_cn_cnm1", "T_cam_imu", "timeshift_cam_imu", "cam_overlaps", "line_delay",
+)  # fmt: skip
+#: Intrinsics of Kalibr's camera models, and its distortion models' coefficient counts.
+KALIBR_INTRINSICS = {
+    "pinhole": "[fu, fv, pu, pv]",
+    "omni": "[xi, fu, fv, pu, pv]",
+    "eucm": "[alpha, beta, fu, fv, pu, pv]",
+    "ds": "[xi, alpha, fu, fv, pu, pv]",
+}
+KALIBR_DISTORTIONS = {"radtan": 4, "equidistant": 4, "fov": 1, "none": 0}
+
+
+def _kalibr_resolution(camera: AbstractCamera) -> list[int]:
+    w, h = camera.image_size
+    return [int(w), int(h)]
+
+
+def camera_to_kalibr(
+    camera: AbstractCamera,
+    name: str = "cam0",
+    *,
+    rostopic: str | None = None,
+    T_cn_cnm1: Any = None,
+) -> dict[str, Any]:
     """Kalibr camchain entry `{name: {camera_model, intrinsics, distortion_model,
-    distortion_coeffs, resolution}}`. Kalibr's `radtan` has no `k3` and its `omni` no
-    skew: a camera with either nonzero raises `ValueError`."""
+    distortion_coeffs, resolution, rostopic[, T_cn_cnm1]}}`.
+
+    **Arguments:**
+
+    - `camera`: a pinhole, a PTZ (its pinhole at the current zoom) or an omni camera.
+      Kalibr's `radtan` has no `k3` and its `omni` no skew: a camera with either nonzero
+      raises `ValueError`.
+    - `name`: the camera's name in the chain (`cam0`, `cam1`, ...).
+    - `rostopic`: its image topic (Kalibr requires one); default `/<name>/image_raw`.
+    - `T_cn_cnm1`: for a camera after the first, the 4x4 transform from the previous
+      camera's frame into this one's (Kalibr's `T_cn_cnm1`).
+    """
     if isinstance(camera, PTZCamera):
         camera = camera.pinhole()
-    w, h = camera.image_size
     if isinstance(camera, PinholeCamera):
         d = np.asarray(camera.dist, np.float64)
         if d[4] != 0:
             raise ValueError(
-                f"Kalibr's `radtan` distortion has no k3; this camera has k3 = {d[4]!r}. Save "
-                "it in the OpenCV format, or calibrate with `fix_k3=True`."
+                f"Kalibr's `radtan` distortion has no k3; this camera has k3 = {float(d[4])!r}. "
+                "Save it in the OpenCV format, or calibrate with `fix_k3=True`."
             )
-        entry = {"camera_model": "pinhole",
-                 "intrinsics": [float(camera.fx), float(camera.fy), float(camera.cx),
-                                float(camera.cy)],
-                 "distortion_model": "radtan", "distortion_coeffs": d[:4].tolist()}  # fmt: skip
+        intrinsics = [float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)]
+        entry = {"camera_model": "pinhole", "intrinsics": intrinsics}
     elif isinstance(camera, OmniCamera):
         if float(camera.skew) != 0:
             raise ValueError(
                 f"Kalibr's `omni` model has no skew; this camera has skew = {float(camera.skew)!r}."
             )
-        entry = {"camera_model": "omni",
-                 "intrinsics": [float(camera.xi), float(camera.fx), float(camera.fy),
-                                float(camera.cx), float(camera.cy)],
-                 "distortion_model": "radtan",
-                 "distortion_coeffs": np.asarray(camera.dist, np.float64).tolist()}  # fmt: skip
+        intrinsics = [float(camera.xi), float(camera.fx), float(camera.fy), float(camera.cx),
+                      float(camera.cy)]  # fmt: skip
+        entry = {"camera_model": "omni", "intrinsics": intrinsics}
+        d = np.asarray(camera.dist, np.float64)
     else:
         raise ValueError(f"`camera` of type {type(camera).__name__} has no Kalibr form.")
-    entry["resolution"] = [int(w), int(h)]
+    entry["distortion_model"] = "radtan"
+    entry["distortion_coeffs"] = d[:4].tolist()
+    entry["resolution"] = _kalibr_resolution(camera)
+    entry["rostopic"] = f"/{name}/image_raw" if rostopic is None else str(rostopic)
+    if T_cn_cnm1 is not None:
+        entry["T_cn_cnm1"] = _rigid4(f"`T_cn_cnm1` of `{name}`", T_cn_cnm1).tolist()
     return {name: entry}
 
 
-def camera_from_kalibr(d: Any, name: str | None = None, where: str = "camchain") -> AbstractCamera:
-    """Camera of a Kalibr camchain mapping (`cam0` by default, or the only camera)."""
-    if not isinstance(d, dict) or not d:
-        raise ValueError(f"`{where}` must be a Kalibr camchain mapping (cam0: ...); got {d!r}.")
-    if name is None:
-        name = "cam0" if "cam0" in d else sorted(d)[0]
-    if name not in d:
-        raise ValueError(f"`{where}` has no camera `{name}`; it has {sorted(d)}.")
-    e = d[name]
-    w = f"{where}.{name}"
-    if not isinstance(e, dict):
-        raise ValueError(f"`{w}` must be a mapping; got {e!r}.")
-    model = e.get("camera_model")
-    dm = e.get("distortion_model", "none")
-    if dm not in ("radtan", "none"):
+def camchain_to_kalibr(
+    cameras: Sequence[AbstractCamera],
+    T_cn_cnm1: Sequence[Any] = (),
+    rostopics: Sequence[str] | None = None,
+) -> dict[str, Any]:
+    """A Kalibr camchain of `cameras` (named `cam0`, `cam1`, ...): every camera with a
+    `rostopic`, every camera after the first with `T_cn_cnm1` (4x4, from camera `n-1`'s
+    frame into camera `n`'s), as Kalibr's `ConfigReader` requires. See
+    [`camera_to_kalibr`][]."""
+    if not cameras:
+        raise ValueError("`cameras` must hold at least one camera.")
+    if len(T_cn_cnm1) != len(cameras) - 1:
         raise ValueError(
-            f"`{w}.distortion_model` must be 'radtan' (or 'none'); got {dm!r}: jaxloc has no "
-            "equidistant/fov distortion."
+            f"`T_cn_cnm1` must hold one 4x4 transform per camera after the first "
+            f"({len(cameras) - 1}); got {len(T_cn_cnm1)}."
         )
-    coeffs = e.get("distortion_coeffs", [0.0, 0.0, 0.0, 0.0]) if dm == "radtan" else [0.0] * 4
-    if not isinstance(coeffs, list) or len(coeffs) != 4:
-        raise ValueError(f"`{w}.distortion_coeffs` must be [k1, k2, r1, r2]; got {coeffs!r}.")
-    res = e.get("resolution")
+    if rostopics is not None and len(rostopics) != len(cameras):
+        raise ValueError(f"`rostopics` must hold one topic per camera; got {short(rostopics)}.")
+    chain: dict[str, Any] = {}
+    for n, camera in enumerate(cameras):
+        topic = None if rostopics is None else rostopics[n]
+        T = None if n == 0 else T_cn_cnm1[n - 1]
+        chain.update(camera_to_kalibr(camera, f"cam{n}", rostopic=topic, T_cn_cnm1=T))
+    return chain
+
+
+def _rigid4(where: str, x: Any) -> np.ndarray:
+    rows = x.tolist() if isinstance(x, np.ndarray) else x
+    if not isinstance(rows, list | tuple) or len(rows) != 4:
+        raise ValueError(f"{where} must be a 4x4 matrix; got {short(x)}.")
+    T = np.array([_numbers(f"{where}[{i}]", r, (4,)) for i, r in enumerate(rows)])
+    R = T[:3, :3]
+    rigid = np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+    if not rigid or T[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError(f"{where} must be a rigid transform [[R, t], [0, 0, 0, 1]] with R a "
+                         f"rotation; got {short(T.tolist())}.")  # fmt: skip
+    return T
+
+
+def is_camchain(d: Any) -> bool:
+    """Whether mapping `d` looks like a Kalibr camchain: keys `cam<n>` or entries with a
+    `camera_model`."""
+    if not isinstance(d, dict) or not d or not all(isinstance(v, dict) for v in d.values()):
+        return False
+    named = all(isinstance(k, str) and re.fullmatch(r"cam\d+", k) for k in d)
+    return named or any("camera_model" in v for v in d.values())
+
+
+def _check_chain_names(d: dict, where: str) -> None:
+    expected = [f"cam{n}" for n in range(len(d))]
+    for k in d:
+        if k not in expected:
+            raise ValueError(
+                f"{where}: camera `{short_key(k, 40)}` is not a Kalibr camera name; a camchain "
+                f"names its {len(d)} cameras {', '.join(expected)}."
+            )
+
+
+def camera_from_kalibr(
+    d: Any, name: str | None = None, where: str = "`camchain`"
+) -> AbstractCamera:
+    """The camera `name` (default `cam0`) of a Kalibr camchain mapping, read with the
+    rules of Kalibr's `ConfigReader` (see the module docstring).
+
+    Raises `ValueError` naming `where` (used verbatim in messages), the camera and the bad
+    field; Kalibr models jaxloc does not have (`equidistant`, `fov`, `eucm`, `ds`) are
+    refused by name."""
+    if not isinstance(d, dict) or not d:
+        raise ValueError(f"{where} must be a Kalibr camchain mapping (cam0: ...); got {short(d)}.")
+    _check_chain_names(d, where)
+    name = "cam0" if name is None else name
+    if name not in d:
+        raise ValueError(f"{where} has no camera `{short_key(name, 40)}`; it has {sorted(d)}.")
+    at = f"{where}, camera `{name}`"
+    e = check_keys(d[name], KALIBR_KEYS, where=at)
+    for key in ("camera_model", "distortion_model", "intrinsics", "distortion_coeffs",
+                "resolution"):  # fmt: skip
+        if key not in e:
+            raise ValueError(f"{at} is missing `{key}` (Kalibr requires it).")
+        if key == "distortion_model":
+            _check_kalibr_models(e["camera_model"], e["distortion_model"], at)
+    _check_kalibr_extras(e, at, len(d))
+    model, intr, coeffs = _kalibr_intrinsics(e, at)
+    res = e["resolution"]
     if not isinstance(res, list) or len(res) != 2:
-        raise ValueError(f"`{w}.resolution` must be [width, height]; got {res!r}.")
-    intr = e.get("intrinsics")
+        raise ValueError(f"{at}: `resolution` must be [width, height]; got {short(res)}.")
+    size = (_size(f"{at}: `resolution[0]`", res[0]), _size(f"{at}: `resolution[1]`", res[1]))
     try:
         if model == "pinhole":
-            if not isinstance(intr, list) or len(intr) != 4:
-                raise ValueError(f"`{w}.intrinsics` must be [fu, fv, pu, pv]; got {intr!r}.")
-            fu, fv, pu, pv = (float(x) for x in intr)
-            return PinholeCamera(fu, fv, pu, pv, [*map(float, coeffs), 0.0], tuple(res))
-        if model == "omni":
-            return OmniCamera.from_kalibr(intr, coeffs, tuple(res))
+            return PinholeCamera(*intr, [*coeffs, 0.0], size)
+        return OmniCamera.from_kalibr(intr, coeffs, size)
     except ValueError as err:
-        raise ValueError(f"`{w}` is invalid: {err}") from None
-    raise ValueError(f"`{w}.camera_model` must be 'pinhole' or 'omni'; got {model!r}.")
+        raise ValueError(f"{at} is invalid: {err}") from None
 
 
-def _write_atomic(path: str, text: str | None = None, writer=None) -> None:
-    d = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=d, suffix=os.path.splitext(path)[1])
-    os.close(fd)
-    try:
-        if writer is not None:
-            writer(tmp)
+def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, list[float], list[float]]:
+    """Camera model, intrinsics and radtan coefficients (zeros for `none`) of a camchain
+    entry, checked as Kalibr's `checkIntrinsics` and `checkDistortion` do."""
+    model, dist_model = e["camera_model"], e["distortion_model"]
+    layout = KALIBR_INTRINSICS[model]
+    intr = _numbers(f"{at}: `intrinsics` {layout}", e["intrinsics"], (layout.count(",") + 1,))
+    xi, (fu, fv, pu, pv) = (intr[0], intr[1:]) if model == "omni" else (0.0, intr)
+    if xi < 0:
+        raise ValueError(f"{at}: `intrinsics` xi must be >= 0; got {xi!r}.")
+    if fu <= 0 or fv <= 0:
+        raise ValueError(f"{at}: `intrinsics` focal lengths must be positive; got {[fu, fv]}.")
+    if pu < 0 or pv < 0:
+        raise ValueError(f"{at}: `intrinsics` principal point must be >= 0; got {[pu, pv]}.")
+    coeffs = e["distortion_coeffs"]
+    if dist_model == "none":
+        if coeffs != []:
+            raise ValueError(f"{at}: `distortion_coeffs` must be [] for distortion model "
+                             f"`none` (Kalibr's rule); got {short(coeffs)}.")  # fmt: skip
+        return model, intr, [0.0] * 4
+    return model, intr, _numbers(f"{at}: `distortion_coeffs`", coeffs, (4,))
+
+
+def _check_kalibr_models(model: Any, dist_model: Any, at: str) -> None:
+    """Kalibr's camera and distortion model names, and those jaxloc reads."""
+    if not isinstance(model, str) or model not in KALIBR_INTRINSICS:
+        raise ValueError(f"{at}: unknown `camera_model: {short_key(model, 40)}`; Kalibr's "
+                         f"models are {', '.join(KALIBR_INTRINSICS)}.")  # fmt: skip
+    if not isinstance(dist_model, str) or dist_model not in KALIBR_DISTORTIONS:
+        raise ValueError(f"{at}: unknown `distortion_model: {short_key(dist_model, 40)}`; "
+                         f"Kalibr's models are {', '.join(KALIBR_DISTORTIONS)}.")  # fmt: skip
+    if model not in ("pinhole", "omni"):
+        raise ValueError(f"{at}: `camera_model: {model}` is not supported by jaxloc (Kalibr's "
+                         "`pinhole` and `omni` are).")  # fmt: skip
+    if dist_model not in ("radtan", "none"):
+        raise ValueError(f"{at}: `distortion_model: {dist_model}` is not supported by jaxloc "
+                         "(Kalibr's `radtan` and `none` are).")  # fmt: skip
+
+
+def _check_kalibr_extras(e: dict, at: str, n_cameras: int) -> None:
+    if "rostopic" in e and not isinstance(e["rostopic"], str):
+        raise ValueError(f"{at}: `rostopic` must be a string; got {short(e['rostopic'])}.")
+    for key in ("T_cn_cnm1", "T_cam_imu"):
+        if key in e:
+            _rigid4(f"{at}: `{key}`", e[key])
+    for key in ("timeshift_cam_imu", "line_delay"):
+        if key in e:
+            _number(f"{at}: `{key}`", e[key])
+    overlaps = e.get("cam_overlaps", [])
+    if not isinstance(overlaps, list) or not all(
+        isinstance(i, int) and not isinstance(i, bool) and 0 <= i < n_cameras for i in overlaps
+    ):
+        raise ValueError(f"{at}: `cam_overlaps` must list camera numbers below {n_cameras}; "
+                         f"got {short(overlaps)}.")  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------
+# OpenCV FileStorage YAML.
+
+
+def _opencv_text(d: dict[str, Any]) -> str:
+    """`cv::FileStorage` YAML of a camera dict (matrices as `!!opencv-matrix`)."""
+    fs = cv2.FileStorage(
+        "camera.yaml",
+        cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML,
+    )
+    for k, v in d.items():
+        if k == "distortion_coefficients":
+            fs.write(k, np.asarray(v, np.float64).reshape(1, -1))
+        elif isinstance(v, str):
+            fs.write(k, v)
+        elif isinstance(v, bool | int | np.integer):
+            fs.write(k, int(v))
+        elif isinstance(v, float | np.floating):
+            fs.write(k, float(v))
         else:
-            with open(tmp, "w", encoding="utf-8") as f:
-                f.write(text)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+            fs.write(k, np.asarray(v, np.float64))
+    return fs.releaseAndGetString()
+
+
+def _opencv_node(node: Any) -> Any:
+    if node.isString():
+        return node.string()
+    if node.isInt():
+        return int(node.real())
+    if node.isReal():
+        return float(node.real())
+    if node.isSeq():
+        return [_opencv_node(node.at(i)) for i in range(node.size())]
+    m = node.mat()  # an `!!opencv-matrix` is a map to FileStorage
+    if m is not None:
+        return np.asarray(m)
+    if node.isMap():
+        return {k: _opencv_node(node.getNode(k)) for k in node.keys()}
+    return None
+
+
+def _read_opencv(text: str, where: str) -> dict[str, Any]:
+    """The top-level keys of a `cv::FileStorage` YAML text, as Python values."""
+    try:
+        fs = cv2.FileStorage(text, cv2.FILE_STORAGE_READ | cv2.FILE_STORAGE_MEMORY)
+        if not fs.isOpened():
+            raise FileFormatError(f"{where} is not a readable OpenCV YAML file.")
+        d = {key: _opencv_node(fs.getNode(key)) for key in fs.root().keys()}
+        fs.release()
+    except cv2.error as e:
+        reason = " ".join(str(e).split())[-200:]
+        raise FileFormatError(f"{where} is not a readable OpenCV YAML file: {reason}") from None
+    except SystemError:  # cv2.FileStorage's parser fails this way on some garbage
+        raise FileFormatError(
+            f"{where} is not a readable OpenCV YAML file (OpenCV's parser failed on it)."
+        ) from None
+    return d
+
+
+# --------------------------------------------------------------------------------------
+# Files.
 
 
 def save_camera(
@@ -176,95 +624,76 @@ def save_camera(
     *,
     extra: dict[str, Any] | None = None,
 ) -> None:
-    """Write a camera file.
+    """Write a camera file, atomically.
 
     **Arguments:**
 
-    - `camera`: a [`jaxloc.PinholeCamera`][], [`jaxloc.PTZCamera`][] (its pinhole at the
-      current zoom) or [`jaxloc.OmniCamera`][].
-    - `path`: destination; written atomically.
-    - `format`: `"opencv"` (`cv::FileStorage` YAML, as `cv2.calibrateCamera` users write
-      it), `"json"` (same keys) or `"kalibr"` (camchain YAML, `cam0`). Default: `json`
-      for a `.json` suffix, else `opencv`.
-    - `extra`: more keys to store (e.g. `rms`; OpenCV/JSON formats only).
+    - `camera`: a [`jaxloc.PinholeCamera`][], [`jaxloc.PTZCamera`][] or
+      [`jaxloc.OmniCamera`][].
+    - `path`: destination.
+    - `format`: `"opencv"` (`cv::FileStorage` YAML, as `cv2.calibrateCamera` users
+      write it; a PTZ camera as its pinhole at the current zoom), `"json"` or `"yaml"`
+      (the camera dict) or `"kalibr"` (a camchain with one camera, `cam0`). Default:
+      `json` for a `.json` suffix, else `opencv`.
+    - `extra`: informational keys to store beside the camera (`INFO_KEYS`, e.g.
+      `rms_px`; not in the Kalibr format).
     """
     path = os.fspath(path)
-    if format is None:
-        format = "json" if path.endswith(".json") else "opencv"
+    format = ("json" if path.endswith(".json") else "opencv") if format is None else format
     if format not in FORMATS:
-        raise ValueError(f"`format` must be one of {FORMATS}; got {format!r}.")
-    if format == "kalibr":
-        _write_atomic(path, yaml.safe_dump(camera_to_kalibr(camera), sort_keys=False))
-        return
-    d = camera_to_dict(camera)
+        raise ValueError(f"`format` must be one of {FORMATS}; got {short(format)}.")
     if extra:
-        d.update(extra)
-    if format == "json":
-        _write_atomic(path, json.dumps(d, indent=2) + "\n")
+        check_keys(extra, INFO_KEYS, where="`extra`")
+        if format == "kalibr":
+            raise ValueError("`extra` cannot be stored in the Kalibr format.")
+    if format == "kalibr":
+        atomic_write(path, dumps_yaml(camera_to_kalibr(camera)))
         return
+    if format == "opencv" and isinstance(camera, PTZCamera):
+        camera = camera.pinhole()
+    d = {**camera_to_dict(camera), **(extra or {})}
+    text = {"json": dumps_json, "yaml": dumps_yaml, "opencv": _opencv_text}[format](d)
+    atomic_write(path, text)
 
-    def write(tmp):
-        fs = cv2.FileStorage(tmp, cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_FORMAT_YAML)
-        for k, v in d.items():
-            if k in ("camera_matrix",):
-                fs.write(k, np.asarray(v, np.float64))
-            elif k == "distortion_coefficients":
-                fs.write(k, np.asarray(v, np.float64).reshape(1, -1))
-            elif isinstance(v, str):
-                fs.write(k, v)
-            elif isinstance(v, bool):
-                fs.write(k, int(v))
-            elif isinstance(v, (int, np.integer)):
-                fs.write(k, int(v))
-            elif isinstance(v, (float, np.floating)):
-                fs.write(k, float(v))
-            else:
-                fs.write(k, np.asarray(v, np.float64))
-        fs.release()
 
-    _write_atomic(path, writer=write)
+def save_camchain(
+    cameras: Sequence[AbstractCamera],
+    path: str | os.PathLike,
+    T_cn_cnm1: Sequence[Any] = (),
+    rostopics: Sequence[str] | None = None,
+) -> None:
+    """Write a Kalibr camchain YAML of `cameras` (`cam0`, `cam1`, ...), atomically; see
+    [`camchain_to_kalibr`][] for `T_cn_cnm1` and `rostopics`."""
+    atomic_write(path, dumps_yaml(camchain_to_kalibr(cameras, T_cn_cnm1, rostopics)))
+
+
+def read_camera_mapping(path: str | os.PathLike) -> dict[str, Any]:
+    """The mapping in a camera file: OpenCV `FileStorage` YAML (starts with `%YAML`),
+    JSON (`.json`) or YAML. Raises [`jaxloc._core.files.FileFormatError`][] naming the
+    file."""
+    path = os.fspath(path)
+    where = f"camera file `{path}`"
+    text = read_text(path, what="camera file")
+    if text.lstrip().startswith("%YAML"):
+        return _read_opencv(text, where)
+    return parse_mapping(text, where=where, syntax=syntax_of(path, default="yaml"))
 
 
 def load_camera(path: str | os.PathLike, name: str | None = None) -> AbstractCamera:
-    """Read a camera file written by [`jaxloc.save_camera`][], OpenCV (`cv::FileStorage`
-    YAML with `camera_matrix`, `distortion_coefficients`, optional `xi`, `image_width`,
-    `image_height`), JSON with the same keys, or a Kalibr camchain (`cam0`, or `name`).
-    Raises `FileNotFoundError` / `ValueError` naming the file and the bad field."""
+    """Read a camera file: the camera dict as JSON or YAML, OpenCV `cv::FileStorage`
+    YAML, or a Kalibr camchain (camera `name`, default `cam0`). See the module docstring.
+
+    Raises [`jaxloc._core.files.FileFormatError`][] (a `ValueError`; for a missing file
+    also a `FileNotFoundError`) naming the file, and the bad key or value."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"Camera file `{path}` does not exist.")
-    with open(path, encoding="utf-8", errors="replace") as f:
-        text = f.read()
-    if text.lstrip().startswith("%YAML"):
-        fs = cv2.FileStorage(path, cv2.FILE_STORAGE_READ)
-        if not fs.isOpened():
-            raise ValueError(f"Camera file `{path}` is not a readable OpenCV YAML file.")
-        d: dict[str, Any] = {}
-        for key in fs.root().keys():
-            node = fs.getNode(key)
-            if node.isString():
-                d[key] = node.string()
-            elif node.isInt():
-                d[key] = int(node.real())
-            elif node.isReal():
-                d[key] = float(node.real())
-            else:
-                m = node.mat()
-                if m is not None:
-                    d[key] = m.tolist()
-        fs.release()
-        return camera_from_dict(d, where=f"camera file {path}")
-    if path.endswith(".json"):
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"Camera file `{path}` is not valid JSON: {e}") from None
-    else:
-        try:
-            d = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise ValueError(f"Camera file `{path}` is not valid YAML: {e}") from None
-    if isinstance(d, dict) and d and all(isinstance(v, dict) and "camera_model" in v
-                                         for v in d.values()):  # fmt: skip
-        return camera_from_kalibr(d, name, where=f"camera file {path}")
-    return camera_from_dict(d, where=f"camera file {path}")
+    d = read_camera_mapping(path)
+    where = f"camera file `{path}`"
+    with naming_file(path, "camera file"):
+        if is_camchain(d):
+            return camera_from_kalibr(d, name, where=where)
+        if name is not None:
+            raise FileFormatError(
+                f"{where} is not a Kalibr camchain; a camera `name` ({short_key(name, 40)}) "
+                "applies only to camchains."
+            )
+        return camera_from_dict(d, where=where)

@@ -4,10 +4,11 @@ Wire with `register(sub)` on the `jaxloc` sub-parsers.
 """
 
 import argparse
-import json
 import time
 
 import numpy as np
+
+from .common import check_outputs, check_seed_arg, EXIT_NO_RESULT, EXIT_OK, write_report
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,7 +20,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Optimize the formation (triangle, headings, overhead camera placement, PTZ "
             "setting, moves) with BFGS from the scenario's formation and random starts, "
             "write the best feasible one as a scenario file, and optionally check it by "
-            "fresh Monte Carlo against the starting formation."
+            "fresh Monte Carlo against the starting formation. When no start ends feasible, "
+            "says so, writes no scenario file and exits with code 1."
         ),
     )
     p.add_argument("--scenario", metavar="FILE",
@@ -49,7 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--draws", type=int, default=32,
                    help="common random draws (moves and, for mc, noise) per evaluation")
     p.add_argument("--iterations", type=int, default=80, help="BFGS iterations per start")
-    p.add_argument("--seed", type=int, default=0, help="seed of the draws and random starts")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the draws and random starts, in [0, 4294967295]")
     p.add_argument("--image-margin", type=float, default=10.0, metavar="PX",
                    help="required margin of every sighting inside a perspective image")
     p.add_argument("--strict-moves", action="store_true",
@@ -62,7 +65,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--verify-trials", type=int, default=0, metavar="N",
                    help="fresh Monte Carlo check with N trials each (0: skip; e.g. 10000)")
     p.add_argument("--verify-seed", type=int, default=12345,
-                   help="seed of the fresh Monte Carlo check (differs from --seed)")
+                   help="seed of the fresh Monte Carlo check (differs from --seed), in "
+                        "[0, 4294967295]")
     p.add_argument("--json", metavar="FILE", help="write every number as JSON")
     p.set_defaults(func=_cmd_design)
 
@@ -103,58 +107,72 @@ def formation_to_dict(formation) -> dict:
     return out
 
 
-def _cmd_design(args) -> int:
-    import equinox as eqx
-    import jax.random as jr
+#: Largest constraint penalty of a formation counted as feasible, passed to
+#: [`jaxloc.design_formation`][] (its default) and used to report the result.
+FEASIBILITY_TOL = 0.05
 
-    from .._design.formation import Formation, Limits, paper_fixed_moves
-    from .._design.search import design_formation, evaluate_formation, objective_value, rmse_table
-    from .._sim.scenario import Scenario
-    from .._sim.scenario_file import load_scenario, save_scenario
 
+def _feasible(res) -> bool:
+    """Whether the search's result is feasible by [`jaxloc.design_formation`][]'s own
+    rule (penalty within the tolerance, finite objective)."""
+    penalty, total = float(res.penalty), float(res.final[int(res.best)])
+    return bool(penalty <= FEASIBILITY_TOL and np.isfinite(total))
+
+
+def _check_design_args(args) -> tuple:
+    """Every check that needs no computation, before anything is compiled. Returns the
+    free fields and the weights."""
     for name in ("starts", "draws", "iterations"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name} must be positive; got {getattr(args, name)}.")
     if args.verify_trials < 0:
         raise ValueError(f"--verify-trials must be >= 0; got {args.verify_trials}.")
-    if args.image_margin < 0:
+    if not args.image_margin >= 0:
         raise ValueError(f"--image-margin must be >= 0; got {args.image_margin}.")
     if args.objective == "mc" and args.criterion != "A":
         raise ValueError("--criterion D applies to --objective crlb only.")
-    free = _parse_free(args.free)
-    weights = _parse_weights(args.weights)
-    fixed = args.moves == "fixed"
+    check_seed_arg("--seed", args.seed)
+    check_seed_arg("--verify-seed", args.verify_seed)
+    check_outputs(args, files=("out", "formation_json", "json"))
+    return _parse_free(args.free), _parse_weights(args.weights)
+
+
+def _start(args):
+    """The scenario (with --strategy applied), the starting formation, and whether the
+    moves are designed as fixed moves."""
+    import equinox as eqx
+
+    from .._design.formation import Formation, paper_fixed_moves
+    from .._sim.scenario import Scenario
+    from .._sim.scenario_file import load_scenario, scenario_from_dict, scenario_to_dict
+
     if args.scenario:
         scenario = load_scenario(args.scenario)
         if args.strategy and args.strategy != scenario.strategy:
-            from .._sim.scenario_file import scenario_from_dict, scenario_to_dict
-
-            d = scenario_to_dict(scenario)
-            d["strategy"] = args.strategy
-            scenario = scenario_from_dict(d)
+            scenario = scenario_from_dict({**scenario_to_dict(scenario), "strategy": args.strategy})
     else:
         scenario = Scenario.paper(args.strategy or "sequential")
-    strategy = scenario.strategy
+    fixed = args.moves == "fixed"
     if not fixed:
         start_moves = None
     elif scenario.moves is not None:
         start_moves = scenario.moves
     else:
-        start_moves = paper_fixed_moves(strategy)
+        start_moves = paper_fixed_moves(scenario.strategy)
     formation = Formation.from_scenario(scenario, start_moves)
     general = args.triangle == "general" or (
         args.triangle is None and scenario.initial_xy is not None
     )
     formation = eqx.tree_at(
-        lambda f: f.initial_xy,
-        formation,
-        scenario.formation_xy() if general else None,
+        lambda f: f.initial_xy, formation, scenario.formation_xy() if general else None,
         is_leaf=lambda x: x is None,
-    )
-    limits = Limits(image_margin_px=float(args.image_margin))
-    key = jr.key(args.seed)
+    )  # fmt: skip
+    return scenario, formation, fixed
+
+
+def _print_header(args, scenario, free, weights) -> None:
     print(
-        f"jaxloc design — {strategy} strategy, objective {args.objective} "
+        f"jaxloc design — {scenario.strategy} strategy, objective {args.objective} "
         f"({'trace' if args.criterion == 'A' else 'log-det'}), weights {weights}, "
         f"{args.moves} moves, free: {free if free == 'all' else ','.join(free)}"
     )
@@ -165,105 +183,166 @@ def _cmd_design(args) -> int:
         f"x {args.iterations} BFGS iterations, {args.draws} common draws, seed {args.seed}; "
         f"image margin {args.image_margin:g} px; {scenario.base.dtype}."
     )
-    t0 = time.perf_counter()
-    res = design_formation(
-        formation, scenario, key=key, objective=args.objective, criterion=args.criterion,
-        free=free, weights=weights, num_starts=args.starts, num_draws=args.draws,
-        iterations=args.iterations, limits=limits, strict_steps=True if args.strict_moves else None,
-    )
-    elapsed = time.perf_counter() - t0
-    best = res.formation
-    report: dict = {
-        "strategy": strategy,
-        "objective": args.objective,
-        "criterion": args.criterion,
-        "weights": list(weights),
-        "moves": args.moves,
-        "free": free if free == "all" else list(free),
-        "seconds": elapsed,
-        "initial": formation_to_dict(res.initial),
-        "optimized": formation_to_dict(best),
-    }
-    # Compare both formations on fresh draws (not the ones optimized on).
+
+
+def _fresh_objectives(args, res, scenario, fixed, weights) -> tuple[dict, object]:
+    """The objective of the initial and optimized formations (and the scenario's own,
+    when its kind of moves differs) on fresh draws, not the ones optimized on."""
+    import jax.random as jr
+
+    from .._design.formation import Formation
+    from .._design.search import objective_value
+
     k_fresh = jr.key(args.seed + 1_000_003)
     baseline = Formation.from_scenario(scenario)  # the scenario's own formation and moves
-    vals = {}
-    runs = [("initial", res.initial), ("optimized", best)]
+    runs = [("initial", res.initial), ("optimized", res.formation)]
     if fixed != baseline.fixed_moves:
         runs.append(("scenario", baseline))
-    for name, f in runs:
-        vals[name] = float(objective_value(
+    vals = {
+        name: float(objective_value(
             f, scenario, key=k_fresh, objective=args.objective, criterion=args.criterion,
             weights=weights, num_draws=max(args.draws, 64),
         ))  # fmt: skip
+        for name, f in runs
+    }
+    return vals, baseline
+
+
+def _print_objectives(args, res, elapsed, vals, baseline) -> None:
     unit = "cm (RMSE)" if args.criterion == "A" else "(mean log det, m^6)"
 
     def show(v):
         return f"{100 * np.sqrt(v):.2f}" if args.criterion == "A" else f"{v:.3f}"
 
     print(f"\nSearch: {elapsed:.1f} s; best start {int(res.best)} of {args.starts}; "
-          f"BFGS steps per start {np.asarray(res.steps).tolist()}")
+          f"BFGS steps per start {np.asarray(res.steps).tolist()}")  # fmt: skip
     print(f"Objective {unit}, on the design draws: {show(float(res.objective_initial))} -> "
-          f"{show(float(res.objective))}")
+          f"{show(float(res.objective))}")  # fmt: skip
     print(f"Objective {unit}, on fresh draws:      {show(vals['initial'])} -> "
-          f"{show(vals['optimized'])}")
+          f"{show(vals['optimized'])}")  # fmt: skip
     if "scenario" in vals:
         kind = "fixed" if baseline.fixed_moves else "random"
         print(f"Objective {unit} of the scenario's own formation ({kind} moves, fresh draws): "
-              f"{show(vals['scenario'])}")
-    margins, in_view = _margins(best, scenario, limits, args.seed, fixed or args.strict_moves)
-    report["objective"] = {
-        "design_draws": [float(res.objective_initial), float(res.objective)],
-        "fresh_draws": [vals["initial"], vals["optimized"]],
-        "scenario_formation_fresh_draws": vals.get("scenario"),
-        "penalty": float(res.penalty),
-    }
-    report["constraint_margins"] = margins
-    report["in_view_fraction"] = in_view
+              f"{show(vals['scenario'])}")  # fmt: skip
+
+
+def _print_result(res, feasible: bool, margins: dict, in_view: float, starts: int) -> None:
     print(f"Constraint penalty {float(res.penalty):.3g} (0 = all margins met); smallest "
-          "margin per constraint (>= 0: satisfied with the required margin):")
+          "margin per constraint (>= 0: satisfied with the required margin):")  # fmt: skip
     for k, v in margins.items():
         print(f"  {k:<16} {v: .4g}")
     print(f"Cycles with every required sighting in view (64 fresh draws): {100 * in_view:.1f}%")
-    print("\nOptimized formation:")
-    for k, v in formation_to_dict(best).items():
+    if feasible:
+        print("\nOptimized formation:")
+    else:
+        print(
+            f"\nNo feasible formation found: none of the {starts} starts ends with its "
+            f"constraint penalty within {FEASIBILITY_TOL:g} (best: {float(res.penalty):.3g}). "
+            "The least infeasible formation below violates the margins above (< 0); it is "
+            "not written as a scenario. Relax the limits (e.g. --image-margin) or free more "
+            "parameters."
+        )
+        print("\nLeast infeasible formation (NOT feasible):")
+    for k, v in formation_to_dict(res.formation).items():
         if v is not None:
             print(f"  {k:<17} {np.round(np.asarray(v), 4).tolist()}")
-    designed = best.to_scenario(scenario)
-    if args.out:
+
+
+def _verify(args, scenario, baseline, designed) -> dict:
+    """Fresh Monte Carlo of the scenario's own formation (`baseline`) and of the designed
+    scenario (as read back from --out if written); prints and returns the RMSE table."""
+    from .._design.formation import Formation
+    from .._design.search import evaluate_formation, rmse_table
+
+    n = args.verify_trials
+    kind = "fixed" if baseline.fixed_moves else "random"
+    print(
+        f"\nFresh Monte Carlo (run_study, as `jaxloc simulate --methods refined`): {n} "
+        f"trials each, seed {args.verify_seed}, refined estimator; before = the "
+        f"scenario's own formation ({kind} moves), after = the optimized one "
+        f"({args.moves} moves" + (f", as read back from {args.out})" if args.out else ")")
+    )
+    before = evaluate_formation(baseline, scenario, n, seed=args.verify_seed)
+    after = evaluate_formation(
+        Formation.from_scenario(designed), designed, n, seed=args.verify_seed
+    )
+    table = rmse_table(before, after)
+    print(format_verification(table))
+    return {"trials": n, "seed": args.verify_seed, **table}
+
+
+def _design_report(args, res, strategy, free, weights, elapsed, vals, margins, in_view):
+    """The --json report: settings, both formations, objectives, constraint margins."""
+    feasible = _feasible(res)
+    return {
+        "strategy": strategy, "objective_kind": args.objective, "criterion": args.criterion,
+        "weights": list(weights), "moves": args.moves,
+        "free": free if free == "all" else list(free), "seconds": elapsed, "feasible": feasible,
+        "initial": formation_to_dict(res.initial), "optimized": formation_to_dict(res.formation),
+        "objective": {
+            "design_draws": [float(res.objective_initial), float(res.objective)],
+            "fresh_draws": [vals["initial"], vals["optimized"]],
+            "scenario_formation_fresh_draws": vals.get("scenario"),
+            "penalty": float(res.penalty),
+        },
+        "constraint_margins": margins,
+        "in_view_fraction": in_view,
+    }  # fmt: skip
+
+
+def _write_outputs(args, res, report, scenario, baseline, feasible):
+    """--out (only a feasible formation), --formation-json and --plot; returns the
+    designed scenario (as read back from --out if written)."""
+    from .._sim.scenario_file import load_scenario, save_scenario
+
+    designed = res.formation.to_scenario(scenario)
+    if args.out and feasible:
         save_scenario(designed, args.out)
         designed = load_scenario(args.out)  # verify what the file says
         print(f"\nwrote {args.out} (run it with: jaxloc simulate --scenario {args.out})")
     if args.formation_json:
-        with open(args.formation_json, "w") as f:
-            json.dump({"initial": report["initial"], "optimized": report["optimized"]}, f,
-                      indent=2)
-        print(f"wrote {args.formation_json}")
+        keys = ("initial", "optimized", "feasible")
+        write_report(args.formation_json, {k: report[k] for k in keys})
     if args.plot:
-        plot_formations(baseline, best, scenario, args.plot, seed=args.seed)
+        plot_formations(baseline, res.formation, scenario, args.plot, seed=args.seed)
         print(f"wrote {args.plot}")
-    if args.verify_trials:
-        n = args.verify_trials
-        kind = "fixed" if baseline.fixed_moves else "random"
-        print(
-            f"\nFresh Monte Carlo (run_study, as `jaxloc simulate --methods refined`): {n} "
-            f"trials each, seed {args.verify_seed}, refined estimator; before = the "
-            f"scenario's own formation ({kind} moves), after = the optimized one "
-            f"({args.moves} moves"
-            + (f", as read back from {args.out})" if args.out else ")")
-        )
-        before = evaluate_formation(baseline, scenario, n, seed=args.verify_seed)
-        after = evaluate_formation(
-            Formation.from_scenario(designed), designed, n, seed=args.verify_seed
-        )
-        table = rmse_table(before, after)
-        report["verification"] = {"trials": n, "seed": args.verify_seed, **table}
-        print(format_verification(table))
+    return designed
+
+
+def _cmd_design(args) -> int:
+    import jax.random as jr
+
+    from .._design.formation import Limits
+    from .._design.search import design_formation
+
+    free, weights = _check_design_args(args)
+    scenario, formation, fixed = _start(args)
+    limits = Limits(image_margin_px=float(args.image_margin))
+    _print_header(args, scenario, free, weights)
+    t0 = time.perf_counter()
+    res = design_formation(
+        formation, scenario, key=jr.key(args.seed), objective=args.objective,
+        criterion=args.criterion, free=free, weights=weights, num_starts=args.starts,
+        num_draws=args.draws, iterations=args.iterations, limits=limits,
+        strict_steps=True if args.strict_moves else None, feasibility_tol=FEASIBILITY_TOL,
+    )  # fmt: skip
+    elapsed = time.perf_counter() - t0
+    feasible = _feasible(res)
+    vals, baseline = _fresh_objectives(args, res, scenario, fixed, weights)
+    _print_objectives(args, res, elapsed, vals, baseline)
+    strict = fixed or args.strict_moves
+    margins, in_view = _margins(res.formation, scenario, limits, args.seed, strict)
+    _print_result(res, feasible, margins, in_view, args.starts)
+    report = _design_report(args, res, scenario.strategy, free, weights, elapsed, vals, margins,
+                            in_view)  # fmt: skip
+    designed = _write_outputs(args, res, report, scenario, baseline, feasible)
+    if args.verify_trials and feasible:
+        report["verification"] = _verify(args, scenario, baseline, designed)
+    elif args.verify_trials:
+        print("\nFresh Monte Carlo skipped: no feasible formation to verify.")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=2)
-        print(f"wrote {args.json}")
-    return 0
+        write_report(args.json, report)
+    return EXIT_OK if feasible else EXIT_NO_RESULT
 
 
 def _margins(formation, scenario, limits, seed: int, strict: bool):

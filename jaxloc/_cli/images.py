@@ -9,6 +9,8 @@ import json
 import math
 import os
 
+from .common import check_outputs, EXIT_NO_RESULT, EXIT_OK, write_report
+
 
 def _cmd_calibrate(args) -> int:
     from .._cameras.files import save_camera
@@ -17,6 +19,7 @@ def _cmd_calibrate(args) -> int:
     board = parse_board(args.board)
     if not (math.isfinite(args.square) and args.square > 0):
         raise ValueError(f"`--square` must be a positive length in metres; got {args.square}.")
+    check_outputs(args, files=("out", "json"))
     images: list[str] = []
     for pattern in args.images:
         matches = sorted(glob.glob(pattern)) if any(c in pattern for c in "*?[") else [pattern]
@@ -49,15 +52,16 @@ def _cmd_calibrate(args) -> int:
     print("  std: " + ", ".join(f"{k} {v:.3g}" for k, v in cal.std.items()))
     print(f"  reprojection RMS {cal.rms:.4f} px; wrote {args.out} ({args.format or 'auto'})")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as f:
-            json.dump(s, f, indent=2)
-    return 0
+        write_report(args.json, s)
+    return EXIT_OK
 
 
 def _cmd_localize(args) -> int:
-    from .._vision.localize import localize_images, write_json_atomic
+    from .._vision.localize import localize_images
     from .._vision.team import load_team
 
+    out = args.out or os.path.splitext(args.team)[0] + "_poses.json"
+    check_outputs(argparse.Namespace(out=out), files=("out",))
     team = load_team(args.team)
     res = localize_images(team, refine=not args.no_refine)
     d = res.to_dict()
@@ -72,10 +76,8 @@ def _cmd_localize(args) -> int:
         print(f"  {name:<3} position ({pos})  yaw/pitch/roll ({ypr}){std}")
     for note in d["notes"]:
         print(f"  note: {note}")
-    out = args.out or os.path.splitext(args.team)[0] + "_poses.json"
-    write_json_atomic(out, d)
-    print(f"wrote {out}")
-    return 0
+    write_report(out, d)
+    return EXIT_OK if d["status"] == "successful" else EXIT_NO_RESULT
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -87,8 +89,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x6")
     p.add_argument("--square", type=float, required=True, metavar="METRES")
     p.add_argument("--out", default="camera.yaml", metavar="FILE", help="camera file to write")
-    p.add_argument("--format", choices=("opencv", "json", "kalibr"), default=None,
-                   help="camera file format (default: from the suffix; OpenCV YAML)")  # fmt: skip
+    p.add_argument("--format", choices=("opencv", "json", "yaml", "kalibr"), default=None,
+                   help="camera file format (default: json for .json, else opencv)")  # fmt: skip
     p.add_argument("--fix-aspect-ratio", action="store_true", help="pinhole: fx = fy")
     p.add_argument("--fix-k3", action="store_true", help="pinhole: k3 = 0 (Kalibr radtan)")
     p.add_argument("--window", type=int, default=None, help="cornerSubPix half window (px)")
@@ -97,7 +99,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_calibrate)
     p = sub.add_parser("localize", help="all four poses from a team's images of one cycle")
     p.add_argument("--team", required=True, metavar="TEAM.yaml")
-    p.add_argument("--out", metavar="FILE", help="poses JSON (default: TEAM_poses.json)")
+    p.add_argument("--out", metavar="FILE", help="poses JSON (default: TEAM_poses.json); "
+                   "written also when the status is not successful (exit code 1)")
     p.add_argument("--no-refine", action="store_true",
                    help="closed form only (no joint refinement, no covariances)")  # fmt: skip
     p.set_defaults(func=_cmd_localize)

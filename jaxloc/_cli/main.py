@@ -1,129 +1,26 @@
 """The `jaxloc` command line: `table1`, `simulate`, `cameras`, `calibrate`, `localize`,
-`design`."""
+`design`. Exit codes: see `jaxloc._cli.common` (and `jaxloc --help`)."""
 
 import argparse
-import json
 import os
 import sys
+import threading
 import time
 
 import numpy as np
 
 from . import design as _cli_design, images as _cli_images
-
-
-# The paper's Table I (one simulated run): position errors in cm, orientation errors in
-# degrees (mean of yaw, pitch, roll errors), per camera C, C1, C2, C3.
-PAPER_TABLE1 = {
-    "concurrent": {
-        "position_cm": [2.85, 0.0, 3.77, 1.84],
-        "orientation_deg": [1.31, 0.0, 2.58, 0.97],
-    },
-    "sequential": {
-        "position_cm": [1.77, 0.37, 0.92, 1.46],
-        "orientation_deg": [0.83, 0.56, 0.86, 1.05],
-    },
-}
-METHOD_LABELS = {
-    "paper": "paper Eq. 6",
-    "robust": "jaxloc robust",
-    "refined": "jaxloc refined (ML)",
-}
-
-
-def _fmt(x: float, width: int = 7) -> str:
-    if not np.isfinite(x):
-        return "n/a".rjust(width)
-    if abs(x) >= 1000:
-        return f"{x:{width}.0f}"
-    return f"{x:{width}.2f}"
-
-
-def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
-    """The paper's Table I layout for one strategy, with jaxloc's distributions beside it."""
-    from .._cycle.layout import CAMERAS
-
-    lines = []
-    n = summary["n_trials"]
-    fails = []
-    for m in methods:
-        f = summary["methods"][m]["failures"]
-        text = ", ".join(f"{k} {v}" for k, v in f.items()) or "none"
-        fails.append(f"{METHOD_LABELS.get(m, m)}: {text}")
-    lines.append(
-        f"{strategy.capitalize()} strategy — {n} trials; failures skipped ({'; '.join(fails)})"
-    )
-    head = f"{'Camera':<10}{'paper run':>10} |"
-    sub = f"{'':<10}{'(1 trial)':>10} |"
-    for m in methods:
-        head += f" {METHOD_LABELS.get(m, m):^23} |"
-        sub += f" {'median':>7}{'RMSE':>8}{'p90':>8} |"
-    crlb = summary.get("crlb")
-    if crlb is not None:
-        head += f" {'Cramér–Rao bound':^23} | {'effic.':>6}"
-        sub += f" {'median':>7}{'RMSE':>8}{'p90':>8} | {'':>6}"
-    labels = {"C": "C", "C1": "C1", "C2": "C2", "C3": "C3"}
-    if strategy == "concurrent":
-        labels["C1"] = "C1 (ref)"
-    rows = (
-        ("Position error (cm, Euclidean)", "position_m", 100.0, "position_cm", "position_rmse_m"),
-        (
-            "Orientation error (deg, mean of |yaw|, |pitch|, |roll| errors)",
-            "ypr_mean_abs_rad",
-            180.0 / np.pi,
-            "orientation_deg",
-            None,
-        ),
-        (
-            "Orientation error (deg, geodesic angle)",
-            "rotation_rad",
-            180.0 / np.pi,
-            None,
-            "rotation_rmse_rad",
-        ),
-    )
-    for title, key, scale, paper_key, crlb_key in rows:
-        lines.append("")
-        lines.append(title)
-        lines.append(head)
-        lines.append(sub)
-        for ci, cam in enumerate(CAMERAS):
-            paper = PAPER_TABLE1[strategy][paper_key][ci] if paper_key else float("nan")
-            row = f"{labels[cam]:<10}{_fmt(paper, 10)} |"
-            for m in methods:
-                s = summary["methods"][m]["cameras"][cam][key]
-                med, rmse, p90 = (s[k] * scale for k in ("median", "rmse", "p90"))
-                row += f" {_fmt(med)}{_fmt(rmse, 8)}{_fmt(p90, 8)} |"
-            if crlb is not None and crlb_key is not None and cam in crlb:
-                bound = crlb[cam][crlb_key] * scale
-                sampled = crlb[cam].get(key, {})
-                med, p90 = (sampled.get(k, float("nan")) * scale for k in ("median", "p90"))
-                best = methods[-1]  # the most refined method run
-                mc = summary["methods"][best]["cameras"][cam][key]["rmse"] * scale
-                eff = bound / mc if mc > 0 and bound > 0 else float("nan")
-                row += f" {_fmt(med)}{_fmt(bound, 8)}{_fmt(p90, 8)} | {_fmt(eff, 6)}"
-            lines.append(row)
-    if crlb is not None:
-        lines.append("")
-        lines.append(
-            "Cramér–Rao bound: RMSE = sqrt of the mean bound over the trials' true "
-            "geometries; median and p90 of one draw from N(0, bound) per trial (an estimator "
-            "exactly at the bound, tails included); efficiency = bound RMSE / "
-            f"{METHOD_LABELS.get(methods[-1], methods[-1])} RMSE (1 = at the bound)."
-        )
-    nees = summary.get("nees")
-    if nees is not None:
-        parts = []
-        for cam, d in nees.items():
-            if d["n"]:
-                lo, hi = d["interval95"]
-                parts.append(f"{cam} {d['mean']:.2f}")
-        lines.append(
-            "Covariance consistency (refined): mean NEES of final positions "
-            + ", ".join(parts)
-            + f"; expected 3, 95% interval of the mean [{lo:.2f}, {hi:.2f}]."
-        )
-    return "\n".join(lines)
+from .common import (
+    check_outputs,
+    check_seed_arg,
+    EXIT_BAD_INPUT,
+    EXIT_CODES_HELP,
+    EXIT_INTERRUPTED,
+    EXIT_NO_RESULT,
+    EXIT_OK,
+    write_report,
+)
+from .table import format_table, plot_studies
 
 
 def _assumptions(scenario, trials: int, seed: int) -> str:
@@ -179,72 +76,98 @@ def _enable_compile_cache() -> str | None:
     return path
 
 
-def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
-    import jax
-
-    from .._study.engine import (
-        balanced_chunk_size,
-        compile_in_background,
-        run_study,
-        stream_study,
-    )
-    from .._study.stats import summarize
+def _methods(args) -> tuple[str, ...]:
     from .._study.trial import METHODS
 
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown:
+    if not methods or any(m not in METHODS for m in methods):
         raise ValueError(
             f"--methods must be a comma-separated subset of {METHODS}; got {args.methods!r}."
         )
-    report = {"title": title, "trials": args.trials, "seed": args.seed, "strategies": {}}
-    print(title)
-    first = next(iter(scenarios.values()))
-    print(_assumptions(first, args.trials, args.seed))
+    return methods
+
+
+def _check_study_args(args) -> None:
+    """Every check of a study command's arguments that needs no computation: run before
+    anything is loaded or compiled, so that a bad output path loses no work."""
+    if args.trials <= 0:
+        raise ValueError(f"--trials must be positive; got {args.trials}.")
+    if args.chunk_size is not None and args.chunk_size <= 0:
+        raise ValueError(f"--chunk-size must be positive; got {args.chunk_size}.")
+    check_seed_arg("--seed", args.seed)
+    _methods(args)
     if args.stream and args.plot:
         raise ValueError("--plot needs every trial's errors; it cannot be used with --stream.")
-    studies = {}
-    chunk_size = args.chunk_size or balanced_chunk_size(args.trials)
-    if args.out is not None and args.chunk_size is None:
-        for strategy in scenarios:
-            manifest = os.path.join(args.out, strategy, "study.json")
-            if os.path.exists(manifest):  # resume with the chunks already on disk
-                with open(manifest) as f:
-                    chunk_size = int(json.load(f)["chunk_size"])
+    check_outputs(args, files=("json",), dirs=("out",))
+
+
+def _chunk_size(args, strategies) -> int:
+    """--chunk-size, else that of a study being resumed in --out, else a balanced one."""
+    from .._study.chunks import read_manifest
+    from .._study.engine import balanced_chunk_size
+
+    if args.chunk_size is not None:
+        return args.chunk_size
+    if args.out is not None:
+        for strategy in strategies:
+            manifest = read_manifest(os.path.join(args.out, strategy))
+            if manifest is not None:  # resume with the chunks already on disk
+                return int(manifest["chunk_size"])
+    return balanced_chunk_size(args.trials)
+
+
+def _run_studies(scenarios: dict, args, chunk_size: int, methods, compile_order) -> tuple:
+    """Run every study, each as soon as its program is compiled. Returns the summaries
+    and (unless --stream) the studies by strategy, and when each program was ready."""
+    from .._study.engine import compile_in_background, run_study, stream_study
+    from .._study.stats import summarize
+
     t_start = time.perf_counter()
-    report["devices"] = jax.device_count()
     # Programs compile in background threads, traced in `compile_order` (the fastest to
     # compile first): each study runs as soon as its program is ready, while the others
-    # are still compiling. Tables print in the order of `scenarios`.
-    compile_order = [s for s in (compile_order or ()) if s in scenarios]
-    compile_order += [s for s in scenarios if s not in compile_order]
-    compiled_at = {}
+    # are still compiling.
+    order = [s for s in (compile_order or ()) if s in scenarios]
+    order += [s for s in scenarios if s not in order]
+    threads = None
     if len(scenarios) > 1:
-        threads = compile_in_background(
-            [scenarios[s] for s in compile_order], chunk_size, methods
-        )
-    summaries = {}
-    for i, strategy in enumerate(compile_order):
-        if len(scenarios) > 1:
+        threads = compile_in_background([scenarios[s] for s in order], chunk_size, methods)
+    summaries, studies, compiled_at = {}, {}, {}
+    for i, strategy in enumerate(order):
+        if threads is not None:
             threads[i].join()
             compiled_at[strategy] = time.perf_counter() - t_start
         t0 = time.perf_counter()
-        out_dir = None if args.out is None else f"{args.out}/{strategy}"
         kwargs = dict(
-            seed=args.seed,
-            chunk_size=chunk_size,
-            methods=methods,
-            out_dir=out_dir,
+            seed=args.seed, chunk_size=chunk_size, methods=methods,
+            out_dir=None if args.out is None else os.path.join(args.out, strategy),
             progress=not args.no_progress,
-        )
+        )  # fmt: skip
         if args.stream:
             summary = stream_study(scenarios[strategy], args.trials, **kwargs)
         else:
-            study = run_study(scenarios[strategy], args.trials, **kwargs)
-            summary = summarize(study, methods)
-            studies[strategy] = study
+            studies[strategy] = run_study(scenarios[strategy], args.trials, **kwargs)
+            summary = summarize(studies[strategy], methods)
         summary["seconds"] = time.perf_counter() - t0
         summaries[strategy] = summary
+    return summaries, studies, compiled_at
+
+
+def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
+    """Run the studies of `scenarios` (`{strategy: Scenario}`), print their tables (in the
+    order of `scenarios`), write --json and --plot. Returns the exit code."""
+    import jax
+
+    _check_study_args(args)
+    methods = _methods(args)
+    chunk_size = _chunk_size(args, scenarios)
+    print(title)
+    print(_assumptions(next(iter(scenarios.values())), args.trials, args.seed))
+    t_start = time.perf_counter()
+    report = {"title": title, "trials": args.trials, "seed": args.seed, "strategies": {},
+              "devices": jax.device_count()}  # fmt: skip
+    summaries, studies, compiled_at = _run_studies(
+        scenarios, args, chunk_size, methods, compile_order
+    )
     if compiled_at:
         report["compile_seconds"] = max(compiled_at.values())
         print(
@@ -254,58 +177,31 @@ def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
             f"{jax.devices()[0].platform.upper()} devices)"
         )
     for strategy in scenarios:
-        summary = summaries[strategy]
-        report["strategies"][strategy] = summary
+        report["strategies"][strategy] = summary = summaries[strategy]
         print()
         print(format_table(strategy, summary, methods))
         print(f"({summary['seconds']:.1f} s"
-              f"{'' if len(scenarios) > 1 else ' including compilation'})")
+              f"{'' if len(scenarios) > 1 else ' including compilation'})")  # fmt: skip
     report["total_seconds"] = time.perf_counter() - t_start
     print(f"\nTotal {report['total_seconds']:.1f} s.")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=2)
-        print(f"\nwrote {args.json}")
+        print()
+        write_report(args.json, report)
     if args.plot:
-        _plot(studies, methods, args.plot)
+        plot_studies(studies, methods, args.plot)
         print(f"wrote {args.plot}")
-    return 0
+    return _study_exit_code(summaries)
 
 
-def _plot(studies: dict, methods, path: str):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from .._cycle.layout import CAMERAS
-
-    fig, axes = plt.subplots(len(studies), 4, figsize=(16, 3.6 * len(studies)), squeeze=False)
-    for row, (strategy, study) in enumerate(studies.items()):
-        for ci, cam in enumerate(CAMERAS):
-            ax = axes[row, ci]
-            errs = {}
-            for mi, m in enumerate(methods):
-                ok = study["status"][:, mi] == 0
-                err = 100 * study["position"][ok, mi, ci]
-                errs[m] = err[err > 0]
-            positive = [e for e in errs.values() if e.size]
-            if not positive:
-                ax.text(0.5, 0.5, "reference robot:\nexact by definition", ha="center",
-                        va="center", transform=ax.transAxes)
-                ax.set_axis_off()
-                continue
-            lo = min(np.percentile(e, 0.5) for e in positive)
-            hi = max(np.percentile(e, 99.5) for e in positive)
-            bins = np.logspace(np.log10(lo), np.log10(hi), 60)
-            for m, err in errs.items():
-                ax.hist(err, bins=bins, alpha=0.5, label=METHOD_LABELS.get(m, m))
-            ax.set_xscale("log")
-            ax.set_title(f"{strategy}: {cam}")
-            ax.set_xlabel("position error (cm, log scale)")
-            ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+def _study_exit_code(summaries: dict) -> int:
+    """`EXIT_NO_RESULT` (with a line on stderr) if some study had no successful trial
+    with any method, else `EXIT_OK`."""
+    for strategy, summary in summaries.items():
+        if not any(m["n_ok"] for m in summary["methods"].values()):
+            print(f"jaxloc: no trial of the {strategy} study succeeded, with any method.",
+                  file=sys.stderr)  # fmt: skip
+            return EXIT_NO_RESULT
+    return EXIT_OK
 
 
 def _cmd_table1(args) -> int:
@@ -323,6 +219,7 @@ def _cmd_table1(args) -> int:
 def _cmd_simulate(args) -> int:
     from .._sim.scenario_file import load_scenario
 
+    _check_study_args(args)
     scenario = load_scenario(args.scenario)
     return _run({scenario.strategy: scenario}, args, f"jaxloc simulate — {args.scenario}")
 
@@ -356,71 +253,137 @@ def _cmd_cameras(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The `jaxloc` argument parser, every subcommand registered."""
     parser = argparse.ArgumentParser(
-        prog="jaxloc", description="Cooperative localization of a heterogeneous robot team."
+        prog="jaxloc",
+        description="Cooperative localization of a heterogeneous robot team.",
+        epilog=EXIT_CODES_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     sub = parser.add_subparsers(dest="command", required=True)
-
-    def study_args(p):
-        p.add_argument("--trials", type=int, default=10_000, help="trials per strategy")
-        p.add_argument("--seed", type=int, default=0)
-        p.add_argument(
-            "--chunk-size",
-            type=int,
-            help="trials per compiled call (default: the fewest chunks of at most 4096 "
-            "trials with the least padding; a resumed --out study keeps its own)",
-        )
-        p.add_argument("--json", metavar="FILE", help="write every number as JSON")
-        p.add_argument("--plot", metavar="FILE", help="error histograms per camera (PNG)")
-        p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable)")
-        p.add_argument("--no-progress", action="store_true")
-        p.add_argument(
-            "--stream",
-            action="store_true",
-            help="bounded memory for any number of trials: keep only running statistics "
-            "(percentiles from histograms, within 1.2%%); no --plot",
-        )
-        p.add_argument(
-            "--methods",
-            metavar="LIST",
-            help="comma-separated estimators to compare (default: paper,robust,refined)",
-        )
-
     p = sub.add_parser("table1", help="the paper's Table I as distributions over many trials")
-    study_args(p)
+    _study_options(p)
     p.set_defaults(func=_cmd_table1)
     p = sub.add_parser("simulate", help="Monte Carlo study of a scenario file (YAML/JSON)")
     p.add_argument("--scenario", required=True, metavar="FILE")
-    study_args(p)
+    _study_options(p)
     p.set_defaults(func=_cmd_simulate)
     p = sub.add_parser("cameras", help="the paper's preset cameras and a round-trip check")
     p.set_defaults(func=_cmd_cameras)
     _cli_images.register(sub)
     _cli_design.register(sub)
+    return parser
 
-    args = parser.parse_args(argv)
-    if getattr(args, "trials", 1) <= 0:
-        parser.error(f"--trials must be positive; got {args.trials}")
-    if getattr(args, "chunk_size", None) is not None and args.chunk_size <= 0:
-        parser.error(f"--chunk-size must be positive; got {args.chunk_size}")
+
+def _study_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--trials", type=int, default=10_000, help="trials per strategy")
+    p.add_argument("--seed", type=int, default=0,
+                   help="the study's seed, an integer in [0, 4294967295] (2**32 - 1)")  # fmt: skip
+    p.add_argument(
+        "--chunk-size",
+        type=int,
+        help="trials per compiled call (default: the fewest chunks of at most 4096 "
+        "trials with the least padding; a resumed --out study keeps its own)",
+    )
+    p.add_argument("--json", metavar="FILE", help="write every number as JSON (strict: NaN "
+                   "as null)")  # fmt: skip
+    p.add_argument("--plot", metavar="FILE", help="error histograms per camera (PNG)")
+    p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable: run the "
+                   "same command again after an interruption)")  # fmt: skip
+    p.add_argument("--no-progress", action="store_true")
+    p.add_argument(
+        "--stream",
+        action="store_true",
+        help="bounded memory for any number of trials: keep only running statistics "
+        "(percentiles from histograms, within 1.2%%); no --plot",
+    )
+    p.add_argument(
+        "--methods",
+        metavar="LIST",
+        help="comma-separated estimators to compare (default: paper,robust,refined)",
+    )
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
+
+
+def _interrupted_message(args) -> str:
+    out = getattr(args, "out", None)
+    if out is not None and getattr(args, "trials", None) is not None:
+        return (f"jaxloc: interrupted; the finished chunks are in {out}: rerun the same "
+                "command to resume.")  # fmt: skip
+    return "jaxloc: interrupted."
+
+
+def _call(func, args, threaded: bool) -> int:
+    """`func(args)`; with `threaded`, in a worker thread while this (main) thread waits,
+    so that Ctrl-C reaches it at once, even while XLA compiles or runs a chunk."""
+    if not threaded:
+        return func(args)
+    outcome: dict = {}
+
+    def work():
+        try:
+            outcome["code"] = func(args)
+        except BaseException as e:  # re-raised in the main thread
+            outcome["error"] = e
+
+    worker = threading.Thread(target=work, name="jaxloc-command", daemon=True)
+    worker.start()
+    worker.join()
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["code"]
+
+
+def _main(argv: list[str] | None, *, threaded: bool) -> int:
+    args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"jaxloc: error: {e}", file=sys.stderr)
-        return 2
+        return _call(args.func, args, threaded)
+    except KeyboardInterrupt:
+        print(_interrupted_message(args), file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    except (ValueError, OSError) as e:
+        print(f"jaxloc: error: {_one_line(e)}", file=sys.stderr, flush=True)
+        return EXIT_BAD_INPUT
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the `jaxloc` command with `argv` (default: `sys.argv[1:]`) in this process and
+    return its exit code (see `jaxloc --help`); errors are one line on stderr. JAX's
+    configuration is left alone (the dtype is the caller's: float64 only if JAX's x64
+    mode is on). Ctrl-C stops the command between two steps of JAX's work; the `jaxloc`
+    program ([`console_main`][]) stops at once."""
+    return _main(argv, threaded=False)
 
 
 def console_main() -> int:
-    """The `jaxloc` command: `main` in float64 (JAX's 64-bit mode), with every core
-    exposed as a JAX CPU device and the persistent compilation cache on. A Python program
-    calling `main` keeps its own JAX configuration (and its own dtype)."""
-    import jax
+    """The `jaxloc` program: [`main`][] in float64 (JAX's x64 mode), with every core
+    exposed as a JAX CPU device, the persistent compilation cache on, and the command in
+    a worker thread, so that Ctrl-C stops it at once, with one line and exit code 130. A
+    study run with `--out` is left resumable: every file is written atomically."""
+    try:
+        import jax
 
-    jax.config.update("jax_enable_x64", True)
-    _use_every_core()
-    _enable_compile_cache()
-    return main()
+        jax.config.update("jax_enable_x64", True)
+        _use_every_core()
+        _enable_compile_cache()
+        code = _main(None, threaded=True)
+    except KeyboardInterrupt:  # while importing
+        print("jaxloc: interrupted.", file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    if code == EXIT_INTERRUPTED:
+        sys.stdout.flush()
+        if sys.stdout.isatty():
+            sys.stdout.write("\x1b[?25h\n")  # show the cursor a progress bar hid
+        sys.stdout.flush()
+        sys.stderr.flush()
+        # Skip the interpreter's teardown: XLA may be compiling or running in another
+        # thread, and tearing the runtime down under it aborts (C++ FATAL, exit 134).
+        os._exit(code)
+    return code
 
 
 if __name__ == "__main__":

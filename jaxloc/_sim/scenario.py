@@ -256,6 +256,7 @@ class Scenario(eqx.Module):
                     bad("moves", f"lengths (column 0) must be positive; got {v.tolist()}.")
         check_surface("ground", self.ground)
         check_surface("ceiling", self.ceiling)
+        check_ceiling_above_ground(self)
 
     @classmethod
     def paper(cls, strategy: str = "sequential", **overrides: Any) -> "Scenario":
@@ -335,3 +336,27 @@ def astype(scenario: Scenario, dtype: Any) -> Scenario:
 
 
 
+
+
+def check_ceiling_above_ground(scenario: Scenario) -> None:
+    """Raise `ValueError` unless `scenario`'s ceiling is above its ground at the initial
+    position of each ground robot (C1, C2, C3) and at the overhead robot's `overhead_xy`,
+    naming the fields, the place and by how much (m). Skipped for traced values (the
+    check is eager; call it from constructors and loaders)."""
+    xy = _concrete(scenario.formation_xy())
+    c_xy = _concrete(scenario.overhead_xy)
+    if xy is None or c_xy is None:
+        return
+    places = [f"{r}'s initial position" for r in ("C1", "C2", "C3")] + ["`overhead_xy`"]
+    points = np.concatenate([np.asarray(xy), np.asarray(c_xy)[None]], axis=0)
+    ceiling = _concrete(scenario.ceiling.height(points))
+    ground = _concrete(scenario.ground.height(points))
+    if ceiling is None or ground is None:
+        return
+    for place, p, c, g in zip(places, points.tolist(), ceiling.tolist(), ground.tolist()):
+        if not c > g:
+            raise ValueError(
+                f"Scenario fields `ceiling` and `ground`: the ceiling must be above the ground; "
+                f"at {place} (x, y) = ({p[0]:.6g}, {p[1]:.6g}) m it is {g - c:.6g} m below it "
+                f"(ceiling {c:.6g} m, ground {g:.6g} m)."
+            )

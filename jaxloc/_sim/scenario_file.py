@@ -1,8 +1,10 @@
 r"""The scenario file format: reading, validating and writing [`jaxloc.Scenario`][]s.
 
 **File format** (YAML or JSON, same keys as the `Scenario` fields; SI units: metres,
-radians, pixels). Surfaces and cameras are nested mappings with a `type`; a camera may
-also be a preset name, or a mapping `{preset: <name>, <field>: <override>, ...}`:
+radians, pixels). Surfaces are nested mappings with a `type`; cameras are jaxloc's camera
+dicts (`model: pinhole | ptz | omni`, the format of camera files, see
+`jaxloc._cameras.files`), a preset name, or a preset with overrides
+`{preset: <name>, <key>: <override>, ...}`:
 
 ```yaml
 strategy: sequential            # or concurrent
@@ -15,16 +17,18 @@ headings: [0.0, 0.0, 0.0]       # C1, C2, C3 (rad, from E's +x towards +y)
 overhead_xy: [0.0, 0.0]
 overhead_heading: 1.5707963267948966
 cameras:
-  overhead: paper_overhead      # or {type: pinhole, fx: ..., fy: ..., cx: ..., cy: ...,
-  ptz: {preset: paper_ptz, pan: 0.0}   #      dist: [k1, k2, p1, p2, k3], image_size: [640, 480]}
+  overhead: paper_overhead
+  ptz: {preset: paper_ptz, pan: 0.0}
   omni2: paper_omni
-  omni3: {type: omni, xi: 1.0, fx: 185.0, fy: 185.0, cx: 319.5, cy: 239.5}
+  omni3: {model: omni, image_width: 640, image_height: 480, xi: 1.0,
+          camera_matrix: [[185.0, 0.0, 319.5], [0.0, 185.0, 239.5], [0.0, 0.0, 1.0]],
+          distortion_coefficients: [0.0, 0.0, 0.0, 0.0]}
 move_mean: 0.8
 move_std: 0.2
 # moves: [[0.8, 0.0], [0.8, 0.0], [0.8, 0.0]]   # optional fixed moves: [length, direction]
 move_candidates: 32
 min_separation: 0.4
-pixel_sigma: 2.0
+pixel_sigma: 2.0                # px; or one per camera [C, C1, C2, C3]
 noise_model: paper              # or gaussian
 odometry_sigma_rel: 0.01
 require_overhead: true
@@ -35,28 +39,42 @@ require_omni: true
 Missing keys take the defaults of [`jaxloc.Scenario`][] (the paper's simulation); in
 particular without `initial_xy` the triangle is the isosceles `base`/`side` one, and
 without `moves` the moves are random. `initial_xy` and `moves` may also be written as
-`null`.
+`null`. An empty file is an error (write `{}` for the paper's scenario). Unknown keys
+are errors naming the key (and, from a file, the file); the ceiling must be above the
+ground at the initial robots and the overhead robot.
 Surface types: `saddle` (`radius_x`, `radius_y`, `height`), `flat` (`height`),
-`sinusoid` (`height`, `amplitude`, `period`, `phase`). Camera types: `pinhole`, `ptz`,
-`omni`, with the constructor arguments of [`jaxloc.PinholeCamera`][],
-[`jaxloc.PTZCamera`][], [`jaxloc.OmniCamera`][] as keys. Presets: `paper_overhead`,
-`paper_ptz`, `paper_omni`. [`jaxloc.scenario_to_dict`][] always writes full mappings, so
+`sinusoid` (`height`, `amplitude`, `period`, `phase`). Camera presets: `paper_overhead`,
+`paper_ptz`, `paper_omni`; a preset's overrides use camera-dict keys (`pan`, `xi`, ...)
+or the constructor's (`fx`, ...). Scenario files written before the camera dict, with
+cameras as `{type: pinhole, fx: ..., fy: ..., cx: ..., cy: ..., dist: [...],
+image_size: [w, h]}` (the constructor's arguments), still load.
+[`jaxloc.scenario_to_dict`][] always writes full mappings, so
 `scenario_from_dict(scenario_to_dict(s))` equals `s` exactly (float64).
 """
 
 import dataclasses
-import json
 import math
 import os
 from typing import Any
 
 import numpy as np
-import yaml
 
-from .._cameras.models import OmniCamera, PinholeCamera, PTZCamera
-from .._cameras.presets import paper_omni_camera, paper_overhead_camera, paper_ptz_camera
+from .._cameras.files import camera_from_spec, camera_to_dict, model_of
+from .._core.files import (
+    atomic_write,
+    check_keys,
+    dumps_mapping,
+    load_mapping,
+    naming_file,
+    short,
+)
 from .._cycle.observations import STRATEGIES
-from .scenario import check_surface, NOISE_MODELS, Scenario, SURFACE_FIELD_KEYS
+from .scenario import (
+    check_surface,
+    NOISE_MODELS,
+    Scenario,
+    SURFACE_FIELD_KEYS,
+)
 from .world import (
     AbstractSurface,
     FlatSurface,
@@ -67,13 +85,8 @@ from .world import (
 
 
 _SURFACE_TYPES = {"saddle": SaddleSurface, "flat": FlatSurface, "sinusoid": SinusoidSurface}
-_CAMERA_TYPES = {"pinhole": PinholeCamera, "ptz": PTZCamera, "omni": OmniCamera}
-_CAMERA_PRESETS = {
-    "paper_overhead": paper_overhead_camera,
-    "paper_ptz": paper_ptz_camera,
-    "paper_omni": paper_omni_camera,
-}
-_CAMERA_SLOTS = {"overhead": "pinhole", "ptz": "ptz", "omni2": "omni", "omni3": "omni"}
+#: The camera model of each camera slot of a scenario.
+CAMERA_SLOTS = {"overhead": "pinhole", "ptz": "ptz", "omni2": "omni", "omni3": "omni"}
 _FLOAT_KEYS = {
     "base": (), "side": (), "headings": (3,), "overhead_xy": (2,), "overhead_heading": (),
     "move_mean": (), "move_std": (), "min_separation": (), "pixel_sigma": (),
@@ -103,16 +116,16 @@ def _is_number(x: Any) -> bool:
 def _parse_float(path: str, x: Any, shape: tuple[int, ...]) -> Any:
     if shape == ():
         if not _is_number(x):
-            raise ValueError(f"Scenario field `{path}` must be a number; got {x!r}.")
+            raise ValueError(f"Scenario field `{path}` must be a number; got {short(x)}.")
         if not math.isfinite(x):
-            raise ValueError(f"Scenario field `{path}` must be finite; got {x!r}.")
+            raise ValueError(f"Scenario field `{path}` must be finite; got {short(x)}.")
         return float(x)
     if not isinstance(x, list | tuple) or len(x) != shape[0] or not all(map(_is_number, x)):
         raise ValueError(
-            f"Scenario field `{path}` must be a list of {shape[0]} numbers; got {x!r}."
+            f"Scenario field `{path}` must be a list of {shape[0]} numbers; got {short(x)}."
         )
     if not all(math.isfinite(v) for v in x):
-        raise ValueError(f"Scenario field `{path}` must be finite; got {x!r}.")
+        raise ValueError(f"Scenario field `{path}` must be finite; got {short(x)}.")
     return [float(v) for v in x]
 
 
@@ -131,22 +144,18 @@ def _parse_rows(path: str, x: Any, rows: int | None) -> Any:
     ):
         raise ValueError(
             f"Scenario field `{path}` must be null or a list of {count}pairs of numbers; "
-            f"got {x!r}."
+            f"got {short(x)}."
         )
     if not all(math.isfinite(v) for r in x for v in r):
-        raise ValueError(f"Scenario field `{path}` must be finite; got {x!r}.")
+        raise ValueError(f"Scenario field `{path}` must be finite; got {short(x)}.")
     return [[float(v) for v in r] for r in x]
 
 
 def _check_keys(path: str, d: Any, allowed) -> None:
+    where = f"`{path}`" if path else "the scenario"
     if not isinstance(d, dict):
-        raise ValueError(f"Scenario field `{path}` must be a mapping; got {d!r}.")
-    for k in d:
-        if k not in allowed:
-            where = f"`{path}`" if path else "the scenario"
-            raise ValueError(
-                f"Unknown key `{k}` in {where}; expected one of {sorted(allowed)}."
-            )
+        raise ValueError(f"Scenario field {where} must be a mapping; got {short(d)}.")
+    check_keys(d, allowed, where=where)
 
 
 def _surface_to_dict(path: str, surface: AbstractSurface) -> dict[str, Any]:
@@ -156,7 +165,7 @@ def _surface_to_dict(path: str, surface: AbstractSurface) -> dict[str, Any]:
             for f in dataclasses.fields(surface):
                 d[SURFACE_FIELD_KEYS.get(f.name, f.name)] = _to_builtin(getattr(surface, f.name))
             return d
-    kind = "a FunctionSurface" if isinstance(surface, FunctionSurface) else repr(surface)
+    kind = "a FunctionSurface" if isinstance(surface, FunctionSurface) else short(surface)
     raise ValueError(
         f"Scenario field `{path}` is {kind}, which has no file representation; use a "
         f"saddle, flat or sinusoid surface to save the scenario."
@@ -167,13 +176,13 @@ def _surface_from_dict(path: str, d: Any) -> AbstractSurface:
     if not isinstance(d, dict) or "type" not in d:
         raise ValueError(
             f"Scenario field `{path}` must be a mapping with a `type` "
-            f"({', '.join(_SURFACE_TYPES)}); got {d!r}."
+            f"({', '.join(_SURFACE_TYPES)}); got {short(d)}."
         )
     kind = d["type"]
-    if kind not in _SURFACE_TYPES:
+    if not isinstance(kind, str) or kind not in _SURFACE_TYPES:
         raise ValueError(
             f"Scenario field `{path}.type` must be one of {tuple(_SURFACE_TYPES)}; "
-            f"got {kind!r}."
+            f"got {short(kind)}."
         )
     cls = _SURFACE_TYPES[kind]
     keys = [SURFACE_FIELD_KEYS.get(f.name, f.name) for f in dataclasses.fields(cls)]
@@ -195,68 +204,18 @@ def _to_builtin(x: Any) -> Any:
     return np.asarray(a, dtype=np.float64).tolist()
 
 
-def _camera_to_dict(camera: Any) -> dict[str, Any]:
-    kind = {cls: name for name, cls in _CAMERA_TYPES.items()}[type(camera)]
-    d: dict[str, Any] = {"type": kind}
-    for f in dataclasses.fields(camera):
-        d[f.name] = _to_builtin(getattr(camera, f.name))
-    return d
-
-
-def _camera_from_dict(path: str, slot: str, d: Any) -> Any:
-    expected = _CAMERA_SLOTS[slot]
-    if isinstance(d, str):
-        d = {"preset": d}
-    if not isinstance(d, dict):
+def _camera_from_entry(slot: str, entry: Any) -> Any:
+    """The camera of slot `slot` from a scenario file's entry (see
+    `jaxloc._cameras.files.camera_from_spec`), of the slot's model."""
+    path = f"cameras.{slot}"
+    camera = camera_from_spec(entry, path)
+    expected, got = CAMERA_SLOTS[slot], model_of(camera)
+    if got != expected:
         raise ValueError(
-            f"Scenario field `{path}` must be a preset name or a mapping; got {d!r}."
+            f"Scenario field `{path}` must be a camera with `model: {expected}` for the "
+            f"`{slot}` slot; got `model: {got}`."
         )
-    d = dict(d)
-    if "preset" in d:
-        name = d.pop("preset")
-        if name not in _CAMERA_PRESETS:
-            raise ValueError(
-                f"Scenario field `{path}.preset` must be one of {tuple(_CAMERA_PRESETS)}; "
-                f"got {name!r}."
-            )
-        base = _camera_to_dict(_CAMERA_PRESETS[name]())
-        base.update(d)
-        d = base
-    kind = d.get("type")
-    if kind not in _CAMERA_TYPES:
-        raise ValueError(
-            f"Scenario field `{path}.type` must be one of {tuple(_CAMERA_TYPES)}; got {kind!r}."
-        )
-    if kind != expected:
-        raise ValueError(
-            f"Scenario field `{path}.type` must be {expected!r} for the `{slot}` camera; "
-            f"got {kind!r}."
-        )
-    cls = _CAMERA_TYPES[kind]
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    _check_keys(path, d, set(fields) | {"type"})
-    kwargs = {}
-    for k, v in d.items():
-        if k == "type":
-            continue
-        if k == "image_size":
-            if (
-                not isinstance(v, list | tuple)
-                or len(v) != 2
-                or not all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in v)
-            ):
-                raise ValueError(
-                    f"Scenario field `{path}.image_size` must be two positive integers "
-                    f"[width, height]; got {v!r}."
-                )
-            kwargs[k] = (int(v[0]), int(v[1]))
-        else:
-            shape = (len(v),) if isinstance(v, list | tuple) else ()
-            kwargs[k] = _parse_float(f"{path}.{k}", v, shape)
-    try:
-        return cls(**kwargs)
-    except (ValueError, TypeError) as e:
-        raise ValueError(f"Scenario field `{path}` is invalid: {e}") from e
+    return camera
 
 
 def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
@@ -280,7 +239,7 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
         if k == "side" and scenario.initial_xy is not None:
             d["initial_xy"] = _to_builtin(scenario.initial_xy)
         if k == "overhead_heading":
-            d["cameras"] = {s: _camera_to_dict(getattr(scenario.rig, s)) for s in _CAMERA_SLOTS}
+            d["cameras"] = {s: camera_to_dict(getattr(scenario.rig, s)) for s in CAMERA_SLOTS}
         if k == "move_std" and scenario.moves is not None:
             d["moves"] = _to_builtin(scenario.moves)
     d["move_candidates"] = int(scenario.move_candidates)
@@ -290,87 +249,80 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
     return d
 
 
-def scenario_from_dict(d: Any) -> Scenario:
-    """Build and validate a [`jaxloc.Scenario`][] from its file representation.
-
-    Missing keys take the defaults (the paper's simulation). Raises `ValueError` naming
-    the field path and the bad value for an unknown key, a wrong type, a bad value
-    (negative sigma, non-positive length, ...) or an unknown strategy, noise model,
-    surface type, camera type or preset.
-    """
-    _check_keys("", d, set(_TOP_KEYS))
+def _scenario_kwargs(d: dict) -> dict[str, Any]:
+    """The constructor arguments of a scenario dict, each key parsed and checked."""
     kwargs: dict[str, Any] = {}
     for k in ("ground", "ceiling"):
         if k in d:
             kwargs[k] = _surface_from_dict(k, d[k])
     for k, shape in _FLOAT_KEYS.items():
         if k in d:
+            if k == "pixel_sigma" and isinstance(d[k], list | tuple):
+                shape = (4,)  # one per camera: C, C1, C2, C3
             kwargs[k] = _parse_float(k, d[k], shape)
     for k, rows in _OPTIONAL_KEYS.items():
         if k in d:
             kwargs[k] = _parse_rows(k, d[k], rows)
     for k, allowed in _STR_KEYS.items():
         if k in d:
-            if d[k] not in allowed:
-                raise ValueError(f"Scenario field `{k}` must be one of {allowed}; got {d[k]!r}.")
+            if not isinstance(d[k], str) or d[k] not in allowed:
+                raise ValueError(
+                    f"Scenario field `{k}` must be one of {allowed}; got {short(d[k])}."
+                )
             kwargs[k] = d[k]
     for k in _BOOL_KEYS:
         if k in d:
             if not isinstance(d[k], bool):
-                raise ValueError(f"Scenario field `{k}` must be true or false; got {d[k]!r}.")
+                raise ValueError(
+                    f"Scenario field `{k}` must be true or false; got {short(d[k])}."
+                )
             kwargs[k] = d[k]
     if "move_candidates" in d:
         v = d["move_candidates"]
         if not isinstance(v, int) or isinstance(v, bool) or v < 1:
             raise ValueError(
-                f"Scenario field `move_candidates` must be a positive integer; got {v!r}."
+                f"Scenario field `move_candidates` must be a positive integer; got {short(v)}."
             )
         kwargs["move_candidates"] = v
     if "cameras" in d:
-        cams = d["cameras"]
-        _check_keys("cameras", cams, set(_CAMERA_SLOTS))
-        for slot, v in cams.items():
-            kwargs[slot] = _camera_from_dict(f"cameras.{slot}", slot, v)
+        _check_keys("cameras", d["cameras"], set(CAMERA_SLOTS))
+        for slot, entry in d["cameras"].items():
+            kwargs[slot] = _camera_from_entry(slot, entry)
+    return kwargs
+
+
+def scenario_from_dict(d: Any) -> Scenario:
+    """Build and validate a [`jaxloc.Scenario`][] from its file representation.
+
+    Missing keys take the defaults (the paper's simulation). Raises `ValueError` naming
+    the field path and the bad value (bounded) for an unknown key, a wrong type, a bad
+    value (negative sigma, non-positive length, a ceiling not above the ground, ...) or
+    an unknown strategy, noise model, surface type, camera model or preset.
+    """
+    _check_keys("", d, set(_TOP_KEYS))
+    kwargs = _scenario_kwargs(d)
     try:
-        return Scenario(**kwargs)
+        scenario = Scenario(**kwargs)
     except ValueError as e:
         raise ValueError(f"Invalid scenario: {e}") from e
+    return scenario
 
 
 def load_scenario(path: str | os.PathLike) -> Scenario:
-    """Read a scenario from a YAML (`.yaml`/`.yml`, via `yaml.safe_load`) or JSON file
-    (any other suffix). See [`jaxloc.scenario_from_dict`][] for validation.
+    """Read a scenario from a YAML (`.yaml`/`.yml`) or JSON file (any other suffix); see
+    [`jaxloc.scenario_from_dict`][] for validation. Bounded (size, no YAML aliases);
+    every error is a `jaxloc._core.files.FileFormatError` (a `ValueError`) naming the
+    file in one line.
     """
     path = os.fspath(path)
-    with open(path, encoding="utf-8") as f:
-        text = f.read()
-    if path.endswith((".yaml", ".yml")):
-        try:
-            d = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise ValueError(f"`{path}` is not valid YAML: {e}") from e
-    else:
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"`{path}` is not valid JSON: {e}") from e
-    if d is None:
-        d = {}
-    return scenario_from_dict(d)
+    d = load_mapping(path, what="scenario file")
+    with naming_file(path, "scenario file"):
+        return scenario_from_dict(d)
 
 
 def save_scenario(scenario: Scenario, path: str | os.PathLike) -> None:
     """Write `scenario` to `path` as YAML (`.yaml`/`.yml`) or JSON (any other suffix),
-    atomically (write to a temporary file, then rename). Round-trips exactly through
-    [`jaxloc.load_scenario`][] for float64 scenarios.
+    atomically. Round-trips exactly through [`jaxloc.load_scenario`][] for float64
+    scenarios.
     """
-    path = os.fspath(path)
-    d = scenario_to_dict(scenario)
-    if path.endswith((".yaml", ".yml")):
-        text = yaml.safe_dump(d, sort_keys=False)
-    else:
-        text = json.dumps(d, indent=2) + "\n"
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    atomic_write(path, dumps_mapping(scenario_to_dict(scenario), path))

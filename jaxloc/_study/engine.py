@@ -7,12 +7,12 @@ sharded over every local device; memory stays bounded by the chunk size whatever
 number of trials.
 
 On disk a study is a folder: `study.json` (what was run: scenario, seed, chunk size,
-methods) and one `chunk_NNNNNN.npz` per chunk, each written to a temporary name and
-renamed atomically. Running the same study again resumes: finished chunks are read
-back, missing ones are computed; no trial is lost or duplicated.
+methods) and one `chunk_NNNNNN.npz` per chunk, each written atomically
+(`jaxloc._study.chunks`). Running the same study again resumes: finished chunks are read
+back and verified (trial indices, seed, study hash, shapes and dtypes), missing or damaged
+ones are computed; no trial is lost or duplicated.
 """
 
-import json
 import os
 import threading
 import time
@@ -27,8 +27,16 @@ from jax.sharding import Mesh, PartitionSpec
 
 from .._sim.scenario import Scenario
 from .._sim.scenario_file import scenario_to_dict
+from .chunks import (
+    check_seed,
+    chunk_path,
+    open_study,
+    read_chunk,
+    study_manifest,
+    write_chunk,
+)
 from .stats import StreamingSummary
-from .trial import METHODS, run_trial
+from .trial import METHODS, run_trial, TrialErrors
 
 
 FIELDS = (
@@ -189,17 +197,32 @@ def run_chunk(
     return out
 
 
-def _atomic_write_npz(path: str, arrays: dict[str, np.ndarray]):
-    tmp = path + ".tmp.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
+def chunk_fields(
+    scenario: Scenario, chunk_size: int, methods: tuple[str, ...]
+) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """Shape and dtype of every array [`jaxloc.run_chunk`][] returns for this study, as
+    `name -> (shape, dtype)`: what a chunk file must hold. Traces the chunk program
+    (cached: a later compilation reuses the trace)."""
+    lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
+    # The program's outputs, as equinox's jit lays them out (with its own extra leaves).
+    out = jax.tree.leaves(lowered.lowered.out_info, is_leaf=lambda x: isinstance(x, TrialErrors))
+    (errors,) = [x for x in out if isinstance(x, TrialErrors)]
+    fields = {n: ((chunk_size, *getattr(errors, n).shape[1:]), np.dtype(getattr(errors, n).dtype))
+              for n in FIELDS}  # fmt: skip
+    fields["index"] = ((chunk_size,), np.dtype(np.int64))
+    return fields
 
 
-def _atomic_write_json(path: str, obj):
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=2, sort_keys=True)
-    os.replace(tmp, path)
+def _check_study_args(n_trials, chunk_size, methods, seed) -> tuple[str, ...]:
+    if not isinstance(n_trials, int) or n_trials <= 0:
+        raise ValueError(f"`n_trials` must be a positive integer; got {n_trials!r}.")
+    if not isinstance(chunk_size, int) or chunk_size <= 0:
+        raise ValueError(f"`chunk_size` must be a positive integer; got {chunk_size!r}.")
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        raise ValueError(f"`methods` must be a non-empty subset of {METHODS}; got {methods!r}.")
+    check_seed(seed)
+    return tuple(methods)
 
 
 def _study_chunks(
@@ -212,55 +235,29 @@ def _study_chunks(
     progress: bool,
 ) -> Iterator[dict[str, np.ndarray]]:
     """Validate a study's settings, then yield its chunks' arrays in order (computed, or
-    read back from `out_dir` when a previous run wrote them)."""
-    if not isinstance(n_trials, int) or n_trials <= 0:
-        raise ValueError(f"`n_trials` must be a positive integer; got {n_trials!r}.")
-    if not isinstance(chunk_size, int) or chunk_size <= 0:
-        raise ValueError(f"`chunk_size` must be a positive integer; got {chunk_size!r}.")
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown or not methods:
-        raise ValueError(f"`methods` must be a non-empty subset of {METHODS}; got {methods!r}.")
-    methods = tuple(methods)
-    n_chunks = -(-n_trials // chunk_size)
-    manifest = {
-        "scenario": scenario_to_dict(scenario),
-        "seed": seed,
-        "chunk_size": chunk_size,
-        "methods": list(methods),
-        "format": 3,
-    }
-    if out_dir is not None:
-        os.makedirs(out_dir, exist_ok=True)
-        path = os.path.join(out_dir, "study.json")
-        if os.path.exists(path):
-            with open(path) as f:
-                existing = json.load(f)
-            for field in manifest:
-                if existing.get(field) != manifest[field]:
-                    raise ValueError(
-                        f"`out_dir` {out_dir!r} holds a study with a different `{field}`; "
-                        "use a new folder or the same settings to resume it."
-                    )
-        else:
-            _atomic_write_json(path, manifest)
-
+    read back from `out_dir` when a previous run wrote them and they pass the checks of
+    `jaxloc._study.chunks`)."""
+    methods = _check_study_args(n_trials, chunk_size, methods, seed)
+    manifest = None
+    if out_dir is not None:  # only a study on disk needs the scenario's file form
+        manifest = study_manifest(scenario_to_dict(scenario), seed, chunk_size, methods)
+        open_study(out_dir, manifest)
+    expected = None
     bar = _progress(progress, n_trials)
     done = 0
     t0 = time.perf_counter()
-    for c in range(n_chunks):
+    for c in range(-(-n_trials // chunk_size)):
         size = min(chunk_size, n_trials - c * chunk_size)
+        path = None if out_dir is None else chunk_path(out_dir, c)
         arrays = None
-        chunk_path = None
-        if out_dir is not None:
-            chunk_path = os.path.join(out_dir, f"chunk_{c:06d}.npz")
-            if os.path.exists(chunk_path):
-                with np.load(chunk_path, allow_pickle=False) as z:
-                    arrays = {k: z[k] for k in z.files}
+        if path is not None and os.path.exists(path):
+            expected = expected or chunk_fields(scenario, chunk_size, methods)
+            arrays = read_chunk(path, expected, c * chunk_size, manifest)
         if arrays is None:
             # Always compute whole chunks so a resumed, longer study gets the same trials.
             arrays = run_chunk(scenario, seed, c, chunk_size, methods)
-            if chunk_path is not None:
-                _atomic_write_npz(chunk_path, arrays)
+            if path is not None:
+                write_chunk(path, arrays, manifest)
         arrays = {k: v[:size] for k, v in arrays.items()}
         done += size
         if bar is not None:
@@ -287,13 +284,15 @@ def run_study(
 
     - `scenario`: a [`jaxloc.Scenario`][].
     - `n_trials`: number of trials (any positive int; the last chunk is partial).
-    - `seed`: the study's seed; trial `i` uses `fold_in(key(seed), i)`.
+    - `seed`: the study's seed, an integer in `[0, 2**32 - 1]`; trial `i` uses
+      `fold_in(key(seed), i)`.
     - `chunk_size`: trials per compiled call; bounds the working memory. Results do not
       depend on it.
     - `methods`: estimators to compare on the same observations (see `jaxloc.METHODS`).
     - `out_dir`: if given, every chunk is written there as it finishes, and a study
       already present there is resumed (it must have the same scenario, seed, chunk size
-      and methods, or a `ValueError` says which differs).
+      and methods, or a `ValueError` says which differs); a damaged chunk file is
+      recomputed with a one-line warning.
     - `progress`: show a progress bar with trials/s.
     - `on_chunk`: optional callback `(chunk_index, arrays)` after each chunk.
 

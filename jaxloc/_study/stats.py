@@ -13,6 +13,23 @@ from .._core.results import status_names
 from .._cycle.layout import CAMERAS
 
 
+def _rms(x: np.ndarray) -> float:
+    """Root mean of `x` (a mean of variances), NaN for no values (without a warning)."""
+    return float(np.sqrt(np.mean(x))) if np.size(x) else float("nan")
+
+
+def _nees_entry(total: float, n: int) -> dict:
+    """Mean NEES of `n` values summing to `total`, with the 95% interval of that mean for a
+    consistent estimator (chi-square with 3 degrees of freedom, normal approximation)."""
+    half = 1.96 * np.sqrt(2 * 3 / max(n, 1))
+    return {
+        "mean": float(total / n) if n else float("nan"),
+        "expected": 3.0,
+        "interval95": [3.0 - half, 3.0 + half],
+        "n": int(n),
+    }
+
+
 def describe(x: np.ndarray) -> dict[str, float]:
     """Mean, median, RMSE, 90th and 99th percentiles of a sample (NaN if empty)."""
     x = np.asarray(x, dtype=np.float64)
@@ -82,14 +99,14 @@ def crlb_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict
     """Cramér–Rao predicted RMSE per camera: `sqrt(mean over trials of trace(bound))`.
 
     Averaged over the trials in which every method succeeded (the same trials the
-    errors are computed on when nothing fails).
+    errors are computed on when nothing fails); NaN if there is none.
     """
     ok = np.all(study["status"] == 0, axis=1)
     out = {}
     for ci, cam in enumerate(CAMERAS):
         out[cam] = {
-            "position_rmse_m": float(np.sqrt(np.mean(study["crlb_position_var"][ok, ci]))),
-            "rotation_rmse_rad": float(np.sqrt(np.mean(study["crlb_rotation_var"][ok, ci]))),
+            "position_rmse_m": _rms(study["crlb_position_var"][ok, ci]),
+            "rotation_rmse_rad": _rms(study["crlb_rotation_var"][ok, ci]),
         }
         if "crlb_position_sample" in study:
             out[cam]["position_m"] = describe(study["crlb_position_sample"][ok, ci])
@@ -106,13 +123,7 @@ def nees_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict
     for ci, cam in enumerate(CAMERAS):
         x = study["nees"][ok, ci]
         x = x[np.isfinite(x)]
-        half = 1.96 * np.sqrt(2 * 3 / max(x.size, 1))
-        out[cam] = {
-            "mean": float(np.mean(x)) if x.size else float("nan"),
-            "expected": 3.0,
-            "interval95": [3.0 - half, 3.0 + half],
-            "n": int(x.size),
-        }
+        out[cam] = _nees_entry(float(np.sum(x)), x.size)
     return out
 
 
@@ -270,12 +281,5 @@ class StreamingSummary:
         if "refined" in self.methods and self._nees_n.any():
             out["nees"] = {}
             for ci, cam in enumerate(CAMERAS):
-                n = int(self._nees_n[ci])
-                half = 1.96 * np.sqrt(2 * 3 / max(n, 1))
-                out["nees"][cam] = {
-                    "mean": float(self._nees_sum[ci] / n) if n else float("nan"),
-                    "expected": 3.0,
-                    "interval95": [3.0 - half, 3.0 + half],
-                    "n": n,
-                }
+                out["nees"][cam] = _nees_entry(self._nees_sum[ci], int(self._nees_n[ci]))
         return out

@@ -19,7 +19,6 @@ detected pixels are the measurements.
 """
 
 import dataclasses
-import json
 import os
 from typing import Any
 
@@ -30,6 +29,7 @@ import numpy as np
 
 from .._cameras.models import OmniCamera
 from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
+from .._core.files import atomic_write_json
 from .._core.poses import ypr_from_rotation
 from .._core.results import RESULTS, status_code, status_names
 from .._cycle.layout import num_steps, placement_ids
@@ -379,12 +379,8 @@ def _inconsistent(team: Team, refined):
 
 
 def write_json_atomic(path: str, data: dict[str, Any]) -> None:
-    """Write `data` as JSON to `path` atomically (temporary file, then rename)."""
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, path)
+    """Write `data` as strict JSON to `path` atomically (see `jaxloc._core.files`)."""
+    atomic_write_json(path, data)
 
 
 def team_from_rendered(

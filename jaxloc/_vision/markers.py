@@ -34,6 +34,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .._core.files import short, short_key
+
 
 @dataclasses.dataclass(frozen=True)
 class MarkerColor:
@@ -86,18 +88,20 @@ class MarkerColor:
             if d not in DEFAULT_MARKER_COLORS:
                 raise ValueError(
                     f"`{where}` must be one of {sorted(DEFAULT_MARKER_COLORS)} or a mapping "
-                    f"with `hue: [low, high]`; got {d!r}."
+                    f"with `hue: [low, high]`; got {short(d)}."
                 )
             return DEFAULT_MARKER_COLORS[d]
         if not isinstance(d, dict):
-            raise ValueError(f"`{where}` must be a colour name or a mapping; got {d!r}.")
+            raise ValueError(f"`{where}` must be a colour name or a mapping; got {short(d)}.")
         allowed = {"hue", "sat_min", "val_min", "sat_max", "val_max"}
         for k in d:
             if k not in allowed:
-                raise ValueError(f"Unknown key `{where}.{k}`; expected one of {sorted(allowed)}.")
+                raise ValueError(
+                    f"Unknown key `{where}.{short_key(k)}`; expected one of {sorted(allowed)}."
+                )
         hue = d.get("hue")
         if not isinstance(hue, (list, tuple)) or len(hue) != 2:
-            raise ValueError(f"`{where}.hue` must be [low, high] (0..179); got {hue!r}.")
+            raise ValueError(f"`{where}.hue` must be [low, high] (0..179); got {short(hue)}.")
         kw = {k: d[k] for k in allowed - {"hue"} if k in d}
         try:
             return cls(hue[0], hue[1], **kw)
