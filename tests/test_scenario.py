@@ -89,7 +89,7 @@ cameras:
     path.write_text(text)
     s = load_scenario(path)
     assert s.strategy == "concurrent" and float(s.ceiling.z0) == 3.0
-    assert float(s.ptz.pan) == 0.25
+    assert float(s.rig.ptz.pan) == 0.25
     ref = Scenario.paper("concurrent", ground=FlatSurface(0.0), ceiling=FlatSurface(3.0),
                          ptz=paper_ptz_camera(pan=0.25))
     assert bool(eqx.tree_equal(s, ref))

@@ -122,7 +122,7 @@ cameras:
     assert bool(eqx.tree_equal(
         s.overhead, PinholeCamera(650.5, 651.25, 320.1, 240.2, (0.01, -0.02, 1e-4, 2e-4, 0.003))
     ))  # fmt: skip
-    assert bool(eqx.tree_equal(s.ptz, paper_ptz_camera(pan=0.25)))
+    assert bool(eqx.tree_equal(s.rig.ptz, paper_ptz_camera(pan=0.25)))
     assert float(s.omni2.fx) == 190.0 and float(s.omni3.skew) == 0.1
     # Written back in the camera dict format; reads back the same scenario.
     save_scenario(s, tmp_path / "new.yaml")

@@ -102,8 +102,10 @@ def _sightings(s, truth):
         return jax.vmap(lambda T: jax.vmap(lambda y: T.inverse() @ y)(pts))(Tb)
 
     r = jax.vmap(jax.vmap(rel))(T_eb, p)  # (N, steps, 3, 3, 3)
-    ptz = s.ptz.in_view(r[:, :, 0] @ jnp.asarray(R_BODY_PTZ))  # p_base = R^T p_body
-    return s.overhead.in_view(q), ptz, s.omni2.in_view(r[:, :, 1]), s.omni3.in_view(r[:, :, 2])
+    ptz = s.rig.ptz.in_view(r[:, :, 0] @ jnp.asarray(R_BODY_PTZ))  # p_base = R^T p_body
+    rig = s.rig
+    omni2, omni3 = rig.omni2.in_view(r[:, :, 1]), rig.omni3.in_view(r[:, :, 2])
+    return rig.overhead.in_view(q), ptz, omni2, omni3
 
 
 @pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
@@ -128,7 +130,9 @@ def test_noiseless_observations_are_exact(strategy):
     np.testing.assert_allclose(obs.mutual[ok], mutual[ok], atol=1e-9)
     np.testing.assert_allclose(obs.overhead[ok], over[ok], atol=1e-9)
     np.testing.assert_allclose(obs.odometry, truth.move_distances, rtol=1e-14)
-    np.testing.assert_array_equal(obs.odometry_sigma, 0.0)
+    # Exact odometry is still a valid observation: sigma 1e-6 of the longest move.
+    floor = 1e-6 * np.max(np.asarray(obs.odometry), axis=-1, keepdims=True)
+    np.testing.assert_allclose(obs.odometry_sigma, np.broadcast_to(floor, obs.odometry.shape))
     # Same key, same geometry with and without noise (noise keys are separate).
     _, (truth_noisy, obs_noisy, ok_noisy) = _run(strategy)
     np.testing.assert_array_equal(ok, ok_noisy)
@@ -141,12 +145,15 @@ def test_noise_statistics():
     # The paper's model: radius ~ N(0, sigma), uniform direction => E[r^2] = sigma^2.
     e = np.asarray(obs.overhead_pixels - obs0.overhead_pixels)[ok].reshape(-1, 2)
     r2 = np.mean(np.sum(e**2, axis=-1))
-    assert abs(np.sqrt(r2) / float(s.pixel_sigma) - 1.0) < 0.1
+    assert abs(np.sqrt(r2) / float(s.rig.pixel_sigma[0]) - 1.0) < 0.1
     off = ~np.eye(3, dtype=bool)
     e = np.asarray(obs.mutual_pixels - obs0.mutual_pixels)[ok][:, :, off].reshape(-1, 2)
-    assert abs(np.sqrt(np.mean(np.sum(e**2, axis=-1))) / float(s.pixel_sigma) - 1.0) < 0.1
+    assert abs(np.sqrt(np.mean(np.sum(e**2, axis=-1))) / float(s.rig.pixel_sigma[0]) - 1.0) < 0.1
     # Noisy bearings stay unit vectors.
-    np.testing.assert_allclose(np.linalg.norm(obs.overhead, axis=-1), 1.0, atol=1e-12)
+    seen = np.asarray(obs.overhead_visible)
+    np.testing.assert_allclose(np.linalg.norm(obs.overhead, axis=-1)[seen], 1.0, atol=1e-12)
+    # A sighting out of view is missing: NaN, not a default value.
+    assert np.all(np.isnan(np.asarray(obs.overhead)[~seen]))
     # Odometry: relative error ~ N(0, 1%); sigma = 1% of the measurement.
     rel = np.asarray(obs.odometry / truth.move_distances - 1.0).ravel()
     assert abs(np.std(rel) / 0.01 - 1.0) < 0.15

@@ -67,19 +67,51 @@ def covariance_from_information(
     """The [`jaxloc.CycleCovariance`][] of the tangent with this information matrix, at
     placements `T_place` `(placements, 7)` and overhead camera `T_over` `(7,)`."""
     cov, ok = spd_inverse(information)
+    return covariance_of_tangent(cov, ok, T_place, T_over, strategy)
+
+
+def _final_positions(T_place, T_over, strategy: str):
+    """The end-of-cycle positions of (C, C1, C2, C3) as a function of the tangent."""
     ids = placement_ids(strategy)
 
     def positions(theta):
         P, O = unpack(theta, T_place, T_over)
         return jnp.concatenate([O[None, 4:], P[ids[-1], 4:]])
 
-    G = jax.jacfwd(positions)(jnp.zeros(cov.shape[0], cov.dtype))  # (4, 3, n)
-    S = jnp.asarray(_final_selection(strategy), cov.dtype)
+    return positions
+
+
+def covariance_of_tangent(
+    tangent: Float[Array, "n n"], ok, T_place, T_over, strategy: str
+) -> CycleCovariance:
+    """The [`jaxloc.CycleCovariance`][] of a tangent covariance `(n, n)`: its position
+    (through the poses, by `jax.jacfwd`) and rotation blocks of the four end-of-cycle
+    poses."""
+    positions = _final_positions(T_place, T_over, strategy)
+    G = jax.jacfwd(positions)(jnp.zeros(tangent.shape[0], tangent.dtype))  # (4, 3, n)
+    S = jnp.asarray(_final_selection(strategy), tangent.dtype)
     return CycleCovariance(
-        tangent=cov,
-        position=jnp.einsum("cin,nm,cjm->cij", G, cov, G),
-        rotation=jnp.einsum("cin,nm,cjm->cij", S, cov, S),
+        tangent=tangent,
+        position=jnp.einsum("cin,nm,cjm->cij", G, tangent, G),
+        rotation=jnp.einsum("cin,nm,cjm->cij", S, tangent, S),
         ok=ok,
+    )
+
+
+def with_offset(
+    covariance: CycleCovariance, offset: Float[Array, " n"], T_place, T_over, strategy: str
+) -> CycleCovariance:
+    """`covariance` plus `offset offset^T` in the tangent (and its image in the position
+    and rotation blocks, to first order): the second moment of an estimate known to be
+    `offset` away from the estimator whose covariance is given."""
+    zero = jnp.zeros_like(offset)
+    _, dp = jax.jvp(_final_positions(T_place, T_over, strategy), (zero,), (offset,))
+    dr = jnp.einsum("cin,n->ci", jnp.asarray(_final_selection(strategy), offset.dtype), offset)
+    return CycleCovariance(
+        tangent=covariance.tangent + offset[:, None] * offset[None, :],
+        position=covariance.position + dp[:, :, None] * dp[:, None, :],
+        rotation=covariance.rotation + dr[:, :, None] * dr[:, None, :],
+        ok=covariance.ok,
     )
 
 

@@ -28,11 +28,11 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from .._core.linalg import gram
+from .._core.linalg import gram, spd_inverse
 from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, FitCheck
 from .._cycle.rig import Rig
-from .covariance import covariance_from_information
+from .covariance import covariance_of_tangent, with_offset
 from .measurements import CycleData, residuals_and_jacobian
 
 
@@ -87,17 +87,27 @@ def check(
     """Gate an estimate whose placements are at `T_place` and whose overhead camera is at
     `T_over`: `(result, checks, covariance)`. `result` is `solver_result` when that is a
     failure; else `unobservable` or `inconsistent_fit` when a gate fails, else
-    `successful`. The covariance is the first-order covariance at the estimate."""
+    `successful`. The covariance is the estimate's own, to first order: the
+    maximum-likelihood estimator's `(J^T J)^-1` at the estimate plus `d d^T`, `d` the step
+    to the linearized optimum (zero at a converged refinement; a closed form's error is
+    that offset plus the optimum's own error)."""
     dtype = T_place.dtype
     r, J = residuals_and_jacobian(T_place, T_over, data, rig, strategy)
-    covariance = covariance_from_information(gram(J), T_place, T_over, strategy)
+    ml_covariance, ok_information = spd_inverse(gram(J))
     unknowns = J.shape[1]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
     chi2 = jnp.sum(r * r)
     g = jnp.sum(J * r[:, None], axis=0)
-    chi2_min = jnp.maximum(chi2 - g @ (covariance.tangent @ g), 0.0)
+    # The step to the minimum of the model linearized here, and the misfit left there.
+    step = -ml_covariance @ g
+    chi2_min = jnp.maximum(chi2 + g @ step, 0.0)
+    ml = covariance_of_tangent(ml_covariance, ok_information, T_place, T_over, strategy)
+    # The estimate's own covariance: the maximum-likelihood estimator's, plus the known
+    # offset of this estimate from the linearized optimum (zero at a converged refinement;
+    # a closed form's error is that offset plus the optimum's error).
+    covariance = with_offset(ml, -step, T_place, T_over, strategy)
     limit = chi2_limit(dof, data.num_sightings, data.num_odometry, rig.noise_model, dtype)
-    is_observable = observable(covariance, formation_size(T_place)) & (dof > 0)
+    is_observable = observable(ml, formation_size(T_place)) & (dof > 0)
     ok = solver_result == RESULTS.successful
     result = RESULTS.where(ok & ~is_observable, RESULTS.unobservable, solver_result)
     result = RESULTS.where(

@@ -1,0 +1,235 @@
+"""No wrong pose marked successful (issue 17): the goodness-of-fit and observability gates
+of every estimate (jaxloc._model.gates), P3P ambiguity, missing and invalid inputs.
+
+Each test is a case of the issue that was `successful` and wrong (or crashed) at 5ebd322.
+One jitted pipeline per strategy (simulate -> corrupt -> closed forms -> refinement),
+vmapped over a fixed batch, keeps compilation to one program per strategy."""
+
+import functools as ft
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import jaxloc
+import numpy as np
+import pytest
+from jaxloc._core.results import RESULTS
+
+
+BATCH = 32
+SUCCESSFUL = RESULTS.successful._value
+
+
+def _corrupt(obs, kind: str, key):
+    """Observations with one realistic defect."""
+    if kind == "clean":
+        return obs
+    if kind == "swap_overhead":  # two overhead images swapped between steps
+        last = obs.overhead.shape[0] - 1
+        order = jnp.array([last] + list(range(1, last)) + [0])
+        return eqx.tree_at(
+            lambda o: (o.overhead, o.overhead_pixels, o.overhead_visible),
+            obs,
+            (obs.overhead[order], obs.overhead_pixels[order], obs.overhead_visible[order]),
+        )
+    if kind == "overhead_first_step_only":  # C saw the robots at step 0 only: 3 points
+        seen = jnp.zeros_like(obs.overhead_visible).at[0].set(True)
+        nan = jnp.where(seen[..., None], obs.overhead, jnp.nan)
+        nan_px = jnp.where(seen[..., None], obs.overhead_pixels, jnp.nan)
+        return eqx.tree_at(
+            lambda o: (o.overhead, o.overhead_pixels, o.overhead_visible),
+            obs,
+            (nan, nan_px, seen),
+        )
+    if kind == "nan_overhead_pixel":  # a missed overhead detection, as a NaN pixel
+        bearing = jaxloc.paper_overhead_camera().unproject(jnp.full(2, jnp.nan))
+        return eqx.tree_at(
+            lambda o: (o.overhead, o.overhead_pixels),
+            obs,
+            (obs.overhead.at[1, 1].set(bearing), obs.overhead_pixels.at[1, 1].set(jnp.nan)),
+        )
+    if kind == "bearings_only":  # the README's own-data path: no pixels at all
+        return eqx.tree_at(
+            lambda o: (o.mutual_pixels, o.overhead_pixels),
+            obs,
+            (
+                jnp.full_like(obs.mutual_pixels, jnp.nan),
+                jnp.full_like(obs.overhead_pixels, jnp.nan),
+            ),
+        )
+    if kind == "negative_odometry":
+        return eqx.tree_at(lambda o: o.odometry, obs, obs.odometry.at[1].multiply(-1.0))
+    if kind == "zero_sigma":
+        return eqx.tree_at(lambda o: o.odometry_sigma, obs, obs.odometry_sigma.at[0].set(0.0))
+    raise ValueError(kind)
+
+
+@ft.partial(jax.jit, static_argnames=("strategy", "kind"))
+def _pipeline(keys, strategy, kind):
+    scenario = jaxloc.Scenario.paper(strategy)
+
+    def one(key):
+        truth, obs, visible = jaxloc.simulate_cycle(scenario, key)
+        obs = _corrupt(obs, kind, key)
+        closed = jaxloc.localize_cycle(obs, scenario.rig, throw=False)
+        refined = jaxloc.refine_cycle(obs, scenario.rig, closed, throw=False)
+        c_true = truth.poses.T_world_overhead.translation()
+
+        def c_error(e):
+            return jnp.linalg.norm(e.poses.T_world_overhead.translation() - c_true)
+
+        def c_nees(e):
+            d = e.poses.T_world_overhead.translation() - c_true
+            return d @ jnp.linalg.solve(e.covariance.position[0], d)
+
+        return {
+            "visible": visible,
+            "closed": closed.result._value,
+            "closed_error": c_error(closed),
+            "closed_nees": c_nees(closed),
+            "refined": refined.result._value,
+            "refined_error": c_error(refined),
+            "refined_nees": c_nees(refined),
+            "dof": refined.checks.dof,
+            "chi2": refined.checks.chi2,
+            "alternatives": closed.alternatives.ok if closed.alternatives is not None else None,
+        }
+
+    return jax.vmap(one)(keys)
+
+
+def _run(strategy, kind, seed=0):
+    keys = jr.split(jr.key(seed), BATCH)
+    out = jax.tree.map(np.asarray, _pipeline(keys, strategy, kind))
+    return {k: v[out["visible"]] for k, v in out.items() if v is not None}
+
+
+#: 99.99% quantile of chi-square with 3 degrees of freedom.
+NEES_LIMIT = 21.108
+
+
+def _assert_never_wrong_and_successful(out):
+    """Every `successful` estimate of the overhead camera is consistent with its own
+    covariance: NEES of its position below the 99.99% quantile."""
+    for stage in ("closed", "refined"):
+        ok = out[stage] == SUCCESSFUL
+        nees = out[f"{stage}_nees"][ok]
+        assert np.all(nees < NEES_LIMIT), (stage, nees, out[f"{stage}_error"][ok])
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_swapped_overhead_images_are_inconsistent(strategy):
+    """Issue 17.3: with two overhead images swapped between steps, the closed forms
+    reported `successful` with C 1.8-3 m off. Now the chi-square gate flags them."""
+    out = _run(strategy, "swap_overhead")
+    _assert_never_wrong_and_successful(out)
+    inconsistent = RESULTS.inconsistent_fit._value
+    assert np.mean(out["closed"] != SUCCESSFUL) > 0.9, out["closed"]
+    assert np.mean(out["refined"] != SUCCESSFUL) > 0.9, out["refined"]
+    assert np.any(out["closed"] == inconsistent)
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_overhead_sighted_once_is_ambiguous_or_right(strategy):
+    """Issue 17.2: with the overhead camera seeing only step 0's three robots, P3P has up
+    to four exact roots; the closed form reported one of them `successful`, often the
+    wrong one. Now several valid roots give `ambiguous`, and a `successful` pose (one
+    valid root) is the right one."""
+    out = _run(strategy, "overhead_first_step_only")
+    _assert_never_wrong_and_successful(out)
+    assert np.any(out["closed"] == RESULTS.ambiguous._value)
+
+
+@pytest.mark.parametrize("strategy", ["sequential"])
+def test_missed_overhead_detection_is_missing_data(strategy):
+    """Issue 17.1: a NaN pixel unprojected to the optical axis turned a missed detection
+    into a confident wrong pose. A NaN bearing is missing data: the other sightings give
+    the pose."""
+    out = _run(strategy, "nan_overhead_pixel")
+    _assert_never_wrong_and_successful(out)
+
+
+def test_bearings_only_observations_refine_with_positive_dof():
+    """Issue 17.4: `refine_cycle` on observations without pixels reported `successful`
+    with dof -33 and chi-square 2.5e-25. Bearings are now projected through the rig's
+    cameras: the refinement has its full degrees of freedom and a chi-square of them."""
+    out = _run("sequential", "bearings_only")
+    ok = out["refined"] == SUCCESSFUL
+    assert ok.mean() > 0.9
+    assert np.all(out["dof"] == 39)  # 2 x 36 pixel sightings + 3 distances - 36 unknowns
+    assert 20 < np.mean(out["chi2"][ok]) < 60
+    _assert_never_wrong_and_successful(out)
+
+
+def test_negative_odometry_is_invalid_under_jit():
+    """Issue 17.5: negative odometry was `successful` for the concurrent strategy."""
+    out = _run("concurrent", "negative_odometry")
+    assert np.all(out["closed"] == RESULTS.invalid_observation._value)
+    assert np.all(out["refined"] == RESULTS.invalid_observation._value)
+
+
+def test_zero_sigma_is_invalid_under_jit():
+    """Issue 17.5: a zero odometry sigma was silently floored (an over-confident fit)."""
+    out = _run("sequential", "zero_sigma")
+    assert np.all(out["closed"] == RESULTS.invalid_observation._value)
+
+
+def test_clean_cycles_pass_the_gates():
+    out = _run("sequential", "clean")
+    assert np.mean(out["refined"] == SUCCESSFUL) > 0.9
+    _assert_never_wrong_and_successful(out)
+
+
+def _clean_observations(strategy="sequential"):
+    scenario = jaxloc.Scenario.paper(strategy)
+    _, obs, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
+    return scenario, obs
+
+
+def test_observations_are_floating_and_validated():
+    """Issue 17.5: integer odometry became an int64 sigma of zeros; negative odometry and
+    non-positive sigmas were accepted. Wrong lengths raised a broadcasting error."""
+    _, obs = _clean_observations()
+    ints = jaxloc.CycleObservations(obs.mutual, obs.overhead, [1, 2, 1], 0.01, "sequential")
+    assert ints.odometry.dtype == obs.mutual.dtype == ints.odometry_sigma.dtype
+    np.testing.assert_allclose(ints.odometry_sigma, 0.01)
+    for name, odometry, sigma in [
+        ("odometry", [1.0, -2.0, 1.0], 0.01),
+        ("odometry", [1.0, 0.0, 1.0], 0.01),
+        ("odometry", [1.0, np.nan, 1.0], 0.01),
+        ("odometry_sigma", [1.0, 2.0, 1.0], 0.0),
+        ("odometry_sigma", [1.0, 2.0, 1.0], [0.01, -0.01, 0.01]),
+    ]:
+        with pytest.raises(ValueError, match=rf"`CycleObservations\({name}=...\)` must be finite"):
+            jaxloc.CycleObservations(obs.mutual, obs.overhead, odometry, sigma, "sequential")
+    with pytest.raises(ValueError, match=r"odometry=.*must have shape \(3,\)"):
+        jaxloc.CycleObservations(obs.mutual, obs.overhead, [1.0, 2.0], 0.01, "sequential")
+
+
+def test_float32_stays_float32():
+    """Issue 17.15: float32 inputs came back float64 with a FutureWarning."""
+    scenario = jaxloc.astype(jaxloc.Scenario.paper("sequential"), jnp.float32)
+    _, obs, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
+    closed = jax.jit(lambda o, r: jaxloc.localize_cycle(o, r, throw=False))(obs, scenario.rig)
+    refined = jax.jit(lambda o, r, e: jaxloc.refine_cycle(o, r, e, throw=False))(
+        obs, scenario.rig, closed
+    )
+    for estimate in (closed, refined):
+        for leaf in jax.tree.leaves((estimate.poses, estimate.checks.chi2, estimate.scales)):
+            assert leaf.dtype == jnp.float32
+    assert refined.result == RESULTS.successful
+
+
+def test_nan_overhead_bearing_marked_visible_is_nonfinite():
+    """Issue 17.15: a NaN overhead bearing that `overhead_visible` says was seen reported
+    `no_valid_solution`; it is `nonfinite_observation` (a NaN bearing left to the default
+    visibility is missing data)."""
+    scenario, obs = _clean_observations()
+    bad = eqx.tree_at(lambda o: o.overhead, obs, obs.overhead.at[1, 1].set(jnp.nan))
+    est = jaxloc.localize_cycle(bad, scenario.rig, throw=False)
+    assert est.result == RESULTS.nonfinite_observation
+    missing = jaxloc.CycleObservations(
+        bad.mutual, bad.overhead, bad.odometry, bad.odometry_sigma, "sequential"
+    )
+    assert not bool(missing.overhead_visible[1, 1])
