@@ -76,9 +76,13 @@ def as_float_arrays(*args: Any) -> list[Array]:
     under x64) if there are none: a camera built from float32 arrays and default
     Python-number arguments is float32 throughout.
     """
-    given = [x.dtype for x in args if _is_inexact_array(x)]
+    # Inexact arrays go through `jnp.asarray` first: a NumPy float64 array (OpenCV's
+    # output) becomes the default float without a warning when x64 is off, where asking
+    # `jnp.result_type` about float64 itself would warn.
+    arrays = [jnp.asarray(x) if _is_inexact_array(x) else None for x in args]
+    given = [a.dtype for a in arrays if a is not None]
     dtype = jnp.result_type(*given) if given else float
-    return [jnp.asarray(x) if _is_inexact_array(x) else jnp.asarray(x, dtype=dtype) for x in args]
+    return [jnp.asarray(x, dtype=dtype) if a is None else a for a, x in zip(arrays, args)]
 
 
 def is_concrete(x: Any) -> bool:

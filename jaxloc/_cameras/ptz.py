@@ -97,7 +97,7 @@ class ZoomTable(eqx.Module):
         dist: Float[ArrayLike, "n m"] | None = None,
     ):
         if dist is None:
-            dist = np.zeros((np.shape(zooms)[0] if np.ndim(zooms) == 1 else 0, 5))
+            dist = [[0.0] * 5] * (np.shape(zooms)[0] if np.ndim(zooms) == 1 else 0)
         self.zooms, self.fx, self.fy, self.cx, self.cy, self.dist = as_float_arrays(
             zooms, fx, fy, cx, cy, dist
         )
