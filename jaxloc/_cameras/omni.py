@@ -49,7 +49,10 @@ class OmniCamera(AbstractCamera):
       $m$ as to a pinhole's normalized coordinates: $\theta = \operatorname{atan}|m|$,
       $\theta_d = \theta(1 + k_1\theta^2 + k_2\theta^4 + k_3\theta^6 + k_4\theta^8)$,
       $m_d = (\theta_d / |m|)\, m$ (Kalibr's `OmniProjection<EquidistantDistortion>`;
-      its Python `ConfigReader` does not load this pair yet).
+      its Python `ConfigReader` does not load this pair yet). With zero coefficients
+      this is not the plain unified model ($|m_d| = \operatorname{atan}|m|$), and the
+      image radius it can reach is bounded ($\theta_d(\pi/2)$ in normalized units):
+      pixels beyond it unproject to the boundary's bearing.
 
     Unprojection undistorts with a fixed number of iterations, then lifts to the sphere
     in closed form: with $r^2 = m_x^2 + m_y^2$,

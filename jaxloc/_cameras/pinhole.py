@@ -89,7 +89,8 @@ class PinholeCamera(AbstractCamera):
       $\theta = \operatorname{atan} r$,
       $\theta_d = \theta (1 + k_1\theta^2 + k_2\theta^4 + k_3\theta^6 + k_4\theta^8)$,
       $(x_d, y_d) = (\theta_d / r)(x, y)$: `cv2.fisheye.projectPoints` (no skew) and
-      Kalibr's `pinhole-equi`.
+      Kalibr's `pinhole-equi`. With zero coefficients this is the equidistant (f-theta)
+      fisheye projection $r_d = \theta$, not the plain pinhole.
 
     Unprojection inverts the distortion with a fixed number of iterations (OpenCV's
     fixed-point iteration then Newton steps; scalar Newton on $\theta$ for the
@@ -134,8 +135,7 @@ class PinholeCamera(AbstractCamera):
         check_leaf(c, "fy", self.fy, positive=True)
         check_leaf(c, "cx", self.cx)
         check_leaf(c, "cy", self.cy)
-        n = self.dist.shape[-1] if self.dist.ndim >= 1 else 0
-        distortion_models.check_model(c, self.distortion, n, PINHOLE_DIST_SIZES)
+        n = distortion_models.check_model(c, self.distortion, self.dist.shape, PINHOLE_DIST_SIZES)
         check_leaf(c, "dist", self.dist, vector=n)
 
     @classmethod

@@ -242,8 +242,7 @@ class PTZCamera(AbstractCamera):
                     f"`{c}({name}=...)` must be below pi (180 deg); got "
                     f"{format_value(np.asarray(x))}."
                 )
-        n = self.dist.shape[-1] if self.dist.ndim >= 1 else 0
-        distortion_models.check_model(c, self.distortion, n, PINHOLE_DIST_SIZES)
+        n = distortion_models.check_model(c, self.distortion, self.dist.shape, PINHOLE_DIST_SIZES)
         check_leaf(c, "dist", self.dist, vector=n)
         table = self.zoom_table
         if table is not None:
