@@ -266,7 +266,12 @@ def stack_jacobian(rows) -> Array:
     """A `(*b, 2, 3)` Jacobian from a pair of triples of `(*b,)` entries."""
     (a, b, c), (d, e, f) = rows
     a, b, c, d, e, f = jnp.broadcast_arrays(a, b, c, d, e, f)
-    return jnp.stack([jnp.stack([a, b, c], axis=-1), jnp.stack([d, e, f], axis=-1)], axis=-2)
+    # Stacked along new leading axes, then moved last: XLA:CPU then computes each entry
+    # over the batch (vectorized) and transposes once. Stacked along the last axes, it
+    # interleaved the six entries per point and the omni camera's Jacobian of a whole
+    # batch ran 2.5x slower than the same under `vmap` (measured, jax 0.10.2).
+    J = jnp.stack([jnp.stack([a, b, c], axis=0), jnp.stack([d, e, f], axis=0)], axis=0)
+    return jnp.moveaxis(J, (0, 1), (-2, -1))
 
 
 # --------------------------------------------------------------------------------------
