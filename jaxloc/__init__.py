@@ -20,7 +20,9 @@ from ._cameras.models import (
     AbstractCamera as AbstractCamera,
     OmniCamera as OmniCamera,
     PinholeCamera as PinholeCamera,
+    project_with_jacobian_autodiff as project_with_jacobian_autodiff,
     PTZCamera as PTZCamera,
+    ZoomTable as ZoomTable,
 )
 from ._cameras.presets import (
     field_of_view as field_of_view,
@@ -154,11 +156,13 @@ from ._vision.calibrate import (
     calibrate_omni as calibrate_omni,
     calibrate_omni_corners as calibrate_omni_corners,
     calibrate_pinhole as calibrate_pinhole,
+    calibrate_ptz as calibrate_ptz,
     Calibration as Calibration,
     find_corners as find_corners,
     object_points as object_points,
     omni_initial_guess as omni_initial_guess,
     parse_board as parse_board,
+    ZoomCalibration as ZoomCalibration,
 )
 from ._vision.localize import (
     detect_team_images as detect_team_images,

@@ -132,8 +132,12 @@ def test_from_to_opencv():
         n = np.asarray(dist).size
         np.testing.assert_array_equal(d2[:n], np.asarray(dist).reshape(-1))
         assert size == (640, 480)
-    with pytest.raises(ValueError, match="`dist`"):
-        PinholeCamera.from_opencv(K, np.zeros(8))
+    # 8 coefficients are OpenCV's rational model (issue 20.5); the thin-prism (12) and
+    # tilted (14) models are not supported.
+    assert PinholeCamera.from_opencv(K, np.zeros(8)).dist.shape == (8,)
+    for n in (3, 6, 12, 14):
+        with pytest.raises(ValueError, match="`dist`"):
+            PinholeCamera.from_opencv(K, np.zeros(n))
     with pytest.raises(ValueError, match="`K`"):
         PinholeCamera.from_opencv(np.eye(2), d)
     K_skew = K.copy()

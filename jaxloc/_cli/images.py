@@ -9,33 +9,110 @@ import json
 import math
 import os
 
+import numpy as np
+
 from .common import check_outputs, EXIT_NO_RESULT, EXIT_OK, write_report
 
 
-def _cmd_calibrate(args) -> int:
-    from .._cameras.files import save_camera
-    from .._vision.calibrate import calibrate_omni, calibrate_pinhole, parse_board
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 
-    board = parse_board(args.board)
-    if not (math.isfinite(args.square) and args.square > 0):
-        raise ValueError(f"`--square` must be a positive length in metres; got {args.square}.")
-    check_outputs(args, files=("out", "json"))
+# Options of one camera model only, with the models they apply to: given for another
+# model they are an error, not silently ignored.
+_MODEL_OPTIONS = {
+    "fix_aspect_ratio": ("pinhole", "ptz"),
+    "fix_k3": ("pinhole", "ptz"),
+    "zero_tangent": ("pinhole", "ptz"),
+    "rational": ("pinhole", "ptz"),
+    "fix_xi": ("omni",),
+    "xi_init": ("omni",),
+    "fix_distortion": ("omni",),
+    "estimate_skew": ("omni",),
+    "principal_point": ("omni",),
+    "max_steps": ("omni",),
+    "zoom": ("ptz",),
+}
+
+
+def _expand_images(patterns: list[str], what: str) -> list[str]:
+    """Image paths from files, glob patterns and directories (every image file in it)."""
     images: list[str] = []
-    for pattern in args.images:
-        matches = sorted(glob.glob(pattern)) if any(c in pattern for c in "*?[") else [pattern]
-        if not matches:
-            raise FileNotFoundError(f"No image matches `{pattern}`.")
+    for pattern in patterns:
+        if os.path.isdir(pattern):
+            matches = sorted(
+                os.path.join(pattern, f)
+                for f in os.listdir(pattern)
+                if f.lower().endswith(_IMAGE_SUFFIXES)
+            )
+            if not matches:
+                raise FileNotFoundError(f"Directory `{pattern}` ({what}) holds no image file.")
+        elif any(c in pattern for c in "*?["):
+            matches = sorted(glob.glob(pattern))
+            if not matches:
+                raise FileNotFoundError(f"No image matches `{pattern}` ({what}).")
+        else:
+            matches = [pattern]
         images.extend(matches)
     for p in images:
         if not os.path.isfile(p):
             raise FileNotFoundError(f"Image file `{p}` does not exist.")
+    return images
+
+
+def _check_model_options(args) -> None:
+    for name, models in _MODEL_OPTIONS.items():
+        value = getattr(args, name)
+        if value not in (None, False, []) and args.model not in models:
+            flag = "--" + name.replace("_", "-")
+            raise ValueError(
+                f"`{flag}` applies to --model {' or '.join(models)}, not --model {args.model}."
+            )
+
+
+def _zoom_out_path(out: str, zoom: float) -> str:
+    stem, suffix = os.path.splitext(out)
+    return f"{stem}_zoom{zoom:.3f}{suffix}"
+
+
+def _cmd_calibrate(args) -> int:
+    from .._cameras.files import save_camera
+    from .._vision.calibrate import (
+        calibrate_omni,
+        calibrate_pinhole,
+        parse_board,
+    )
+
+    board = parse_board(args.board)
+    if not (math.isfinite(args.square) and args.square > 0):
+        raise ValueError(f"`--square` must be a positive length in metres; got {args.square}.")
+    _check_model_options(args)
+    check_outputs(args, files=("out", "json"))
+    if args.rational and args.format == "kalibr":
+        raise ValueError(
+            "`--rational` cannot be saved with `--format kalibr` (Kalibr's radtan has 4 "
+            "coefficients); use the OpenCV or JSON format."
+        )
+    pinhole_options = dict(
+        fix_aspect_ratio=args.fix_aspect_ratio, fix_k3=args.fix_k3 or args.format == "kalibr",
+        zero_tangent=args.zero_tangent, rational=args.rational, window=args.window or 11,
+    )  # fmt: skip
+    if args.model == "ptz":
+        return _calibrate_ptz(args, board, pinhole_options)
+    if not args.images:
+        raise ValueError(f"--model {args.model} needs IMAGES (files, glob patterns or folders).")
+    images = _expand_images(args.images, "IMAGES")
     if args.model == "pinhole":
-        cal = calibrate_pinhole(
-            images, board, args.square, fix_aspect_ratio=args.fix_aspect_ratio,
-            fix_k3=args.fix_k3 or args.format == "kalibr", window=args.window or 11,
-        )  # fmt: skip
+        cal = calibrate_pinhole(images, board, args.square, **pinhole_options)
     else:
-        cal = calibrate_omni(images, board, args.square, window=args.window or 5)
+        omni_options = dict(
+            window=args.window or 5, fix_xi=args.fix_xi, fix_distortion=args.fix_distortion,
+            fix_skew=not args.estimate_skew,
+            principal_point=tuple(args.principal_point) if args.principal_point else None,
+        )  # fmt: skip
+        if args.xi_init is not None:
+            omni_options["xi_init"] = args.xi_init
+        if args.max_steps is not None:
+            omni_options["max_steps"] = args.max_steps
+        cal = calibrate_omni(images, board, args.square, **omni_options)
     extra = {"rms_px": cal.rms, "num_images": len(cal.used)}
     save_camera(cal.camera, args.out, args.format,
                 extra=None if args.format == "kalibr" else extra)  # fmt: skip
@@ -53,6 +130,50 @@ def _cmd_calibrate(args) -> int:
     print(f"  reprojection RMS {cal.rms:.4f} px; wrote {args.out} ({args.format or 'auto'})")
     if args.json:
         write_report(args.json, s)
+    return EXIT_OK
+
+
+def _calibrate_ptz(args, board, pinhole_options) -> int:
+    from .._cameras.files import save_camera
+    from .._vision.calibrate import calibrate_ptz
+
+    if args.images:
+        raise ValueError(
+            "--model ptz takes its images per zoom step (`--zoom Z IMAGES`, repeated), not "
+            f"as IMAGES; got {args.images[:3]}."
+        )
+    if not args.zoom or len(args.zoom) < 2:
+        raise ValueError(
+            "--model ptz needs at least two zoom steps: `--zoom Z1 IMAGES1 --zoom Z2 IMAGES2`."
+        )
+    sets = []
+    for z_text, pattern in args.zoom:
+        try:
+            z = float(z_text)
+        except ValueError:
+            raise ValueError(f"`--zoom` takes a zoom in [0, 1] then images; got {z_text!r}.")
+        sets.append((z, _expand_images([pattern], f"--zoom {z_text}")))
+    cal = calibrate_ptz(sets, board, args.square, **pinhole_options)
+    n_img = sum(len(imgs) for _, imgs in sets)
+    print(f"ptz calibration at {len(cal.zooms)} zoom steps from {n_img} images "
+          f"(board {board[0]}x{board[1]}, square {args.square} m)")  # fmt: skip
+    # One camera file per zoom step (each a complete pinhole calibration at that zoom);
+    # the table as a whole is in the --json report.
+    for z, step in zip(cal.zooms, cal.steps):
+        path = _zoom_out_path(args.out, z)
+        extra = {"rms_px": step.rms, "num_images": len(step.used), "zoom": z}
+        save_camera(step.camera, path, args.format,
+                    extra=None if args.format == "kalibr" else extra)  # fmt: skip
+        c = step.camera
+        print(f"  zoom {z:.3f}: fx {float(c.fx):.2f}, fy {float(c.fy):.2f}, "
+              f"cx {float(c.cx):.2f}, cy {float(c.cy):.2f}, dist "
+              f"{json.dumps(np.asarray(c.dist).round(6).tolist())}, RMS {step.rms:.4f} px "
+              f"({len(step.used)} images); wrote {path}")  # fmt: skip
+        if step.rejected:
+            print(f"    no board found in: {', '.join(step.rejected)}")
+    if args.json:
+        write_report(args.json, cal.summary())
+        print(f"  zoom table and per-step reports: {args.json}")
     return EXIT_OK
 
 
@@ -83,19 +204,53 @@ def _cmd_localize(args) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers."""
     p = sub.add_parser(
-        "calibrate", help="calibrate a camera from chessboard images (pinhole or omni)"
+        "calibrate",
+        help="calibrate a camera from chessboard images (pinhole, omni, or ptz over zooms)",
     )
-    p.add_argument("--model", choices=("pinhole", "omni"), required=True)
+    p.add_argument("--model", choices=("pinhole", "omni", "ptz"), required=True,
+                   help="pinhole (OpenCV), omni (unified model, jaxloc's own fit) or ptz "
+                   "(one pinhole calibration per --zoom step, gathered into a zoom "
+                   "table)")  # fmt: skip
     p.add_argument("--board", required=True, metavar="COLSxROWS", help="inner corners, e.g. 9x6")
-    p.add_argument("--square", type=float, required=True, metavar="METRES")
-    p.add_argument("--out", default="camera.yaml", metavar="FILE", help="camera file to write")
+    p.add_argument("--square", type=float, required=True, metavar="METRES",
+                   help="side of a chessboard square")  # fmt: skip
+    p.add_argument("--out", default="camera.yaml", metavar="FILE",
+                   help="camera file to write (ptz: one per zoom step, FILE's name with "
+                   "_zoomZ before its suffix)")  # fmt: skip
     p.add_argument("--format", choices=("opencv", "json", "yaml", "kalibr"), default=None,
-                   help="camera file format (default: json for .json, else opencv)")  # fmt: skip
-    p.add_argument("--fix-aspect-ratio", action="store_true", help="pinhole: fx = fy")
-    p.add_argument("--fix-k3", action="store_true", help="pinhole: k3 = 0 (Kalibr radtan)")
-    p.add_argument("--window", type=int, default=None, help="cornerSubPix half window (px)")
+                   help="camera file format (default: from the suffix; OpenCV YAML)")  # fmt: skip
+    p.add_argument("--window", type=int, default=None,
+                   help="cornerSubPix half window in px (default 11; omni 5)")  # fmt: skip
     p.add_argument("--json", metavar="FILE", help="also write the calibration report")
-    p.add_argument("images", nargs="+", metavar="IMAGES")
+    g = p.add_argument_group("pinhole and ptz options")
+    g.add_argument("--fix-aspect-ratio", action="store_true", help="fx = fy")
+    g.add_argument("--fix-k3", action="store_true", help="k3 = 0 (as Kalibr's radtan)")
+    g.add_argument("--zero-tangent", action="store_true", help="p1 = p2 = 0")
+    g.add_argument("--rational", action="store_true",
+                   help="OpenCV's 8-coefficient rational model (k1 k2 p1 p2 k3 k4 k5 k6), "
+                   "for wide-angle lenses")  # fmt: skip
+    g = p.add_argument_group("ptz options")
+    g.add_argument("--zoom", nargs=2, action="append", metavar=("Z", "IMAGES"),
+                   help="a zoom step in [0, 1] (wide to tele) and its images: a folder, a "
+                   "quoted glob pattern or one file; repeat for every step (at least "
+                   "two)")  # fmt: skip
+    g = p.add_argument_group("omni options")
+    g.add_argument("--xi-init", type=float, default=None, metavar="XI",
+                   help="starting mirror parameter xi (default 1, a paraboloid)")  # fmt: skip
+    g.add_argument("--fix-xi", action="store_true",
+                   help="hold xi at its starting value (--xi-init)")  # fmt: skip
+    g.add_argument("--fix-distortion", action="store_true",
+                   help="no distortion: hold k1 k2 p1 p2 at 0")  # fmt: skip
+    g.add_argument("--estimate-skew", action="store_true",
+                   help="estimate the skew K[0, 1] (default: held at 0, as in Kalibr's "
+                   "omni model)")  # fmt: skip
+    g.add_argument("--principal-point", type=float, nargs=2, default=None, metavar=("CX", "CY"),
+                   help="starting principal point in px (default: the image centre)")  # fmt: skip
+    g.add_argument("--max-steps", type=int, default=None, metavar="N",
+                   help="Levenberg-Marquardt iteration limit (default 200)")  # fmt: skip
+    p.add_argument("images", nargs="*", metavar="IMAGES",
+                   help="pinhole and omni: image files, quoted glob patterns or "
+                   "folders")  # fmt: skip
     p.set_defaults(func=_cmd_calibrate)
     p = sub.add_parser("localize", help="all four poses from a team's images of one cycle")
     p.add_argument("--team", required=True, metavar="TEAM.yaml")

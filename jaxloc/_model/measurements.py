@@ -13,8 +13,8 @@ path of `jaxloc._cycle.sightings`.
 The Jacobian is assembled by the chain rule, not by differentiating the whole model:
 a sighting depends on two poses only (jaxlie's right perturbation `T exp(delta)`,
 `delta = (v, omega)`; see `jaxloc._cycle.sightings`), and only the camera projection is
-differentiated (`project_with_jacobian`). About 20x cheaper than `jax.jacfwd` over the
-~40 stacked tangent directions.
+differentiated, by each model's closed-form `project_with_jacobian`. About 20x cheaper
+than `jax.jacfwd` over the ~40 stacked tangent directions.
 """
 
 import equinox as eqx
@@ -46,17 +46,6 @@ def rotations(T: Float[Array, "*b 7"]) -> Float[Array, "*b 3 3"]:
     flat = T.reshape(-1, 7)
     R = jax.vmap(lambda w: jaxlie.SO3(w[:4]).as_matrix())(flat)
     return R.reshape(T.shape[:-1] + (3, 3))
-
-
-def project_with_jacobian(camera, points: Float[Array, "*b 3"]):
-    """Pixels `(*b, 2)` and `d pixel / d point` `(*b, 2, 3)` of a camera model: the
-    model's own `project_with_jacobian` when it has one, else forward mode per point."""
-    if hasattr(camera, "project_with_jacobian"):
-        return camera.project_with_jacobian(points)
-    flat = points.reshape(-1, 3)
-    uv = camera.project(flat)
-    J = jax.vmap(jax.jacfwd(camera.project))(flat)
-    return uv.reshape(points.shape[:-1] + (2,)), J.reshape(points.shape[:-1] + (2, 3))
 
 
 class Geometry(eqx.Module):
@@ -275,7 +264,7 @@ def whitened_with_jacobian(
     R = g.R_body
     # Mutual sightings: pixels, and the two pose blocks through the camera's Jacobian.
     uv, Jp = ground_cameras_apply(
-        rig, lambda cam, x: project_with_jacobian(cam, x), _by_observer(g.mutual_cam)
+        rig, lambda cam, x: cam.project_with_jacobian(x), _by_observer(g.mutual_cam)
     )
     mutual, Jp = _from_observer(uv), _from_observer(Jp)  # (steps, i, j, 2), (.., 2, 3)
     observer = matmul(Jp, observer_jacobian(g.mount_R[None, :, None], g.mutual_body))
@@ -284,7 +273,7 @@ def whitened_with_jacobian(
     A = matmul(jnp.swapaxes(g.mount_R, -1, -2)[None, :, None], RiT_Rj)
     target = matmul(Jp, target_jacobian(A, g.markers[None, None, :, :]))
     # Overhead sightings.
-    overhead, Jo = project_with_jacobian(rig.overhead, g.over_cam)
+    overhead, Jo = rig.overhead.project_with_jacobian(g.over_cam)
     over_cam = matmul(Jo, camera_pose_jacobian(g.over_cam))
     A_o = matmul(jnp.swapaxes(g.R_over, -1, -2)[None, None], R)
     over_pt = matmul(Jo, target_jacobian(A_o, g.markers[None]))

@@ -26,7 +26,6 @@ from .._core.numerics import safe_sqrt
 from .._core.poses import apply, inverse, rplus, rplus_params
 from .._core.results import raise_if_failed, RESULTS
 from .._cycle.sightings import matmul, skew
-from .._model.measurements import project_with_jacobian
 from .._solvers.pose_problem import identity_like, no_alternatives, PoseSolution, where_pose
 
 
@@ -99,7 +98,7 @@ def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, l
     solver minimises $\sum \rho$ with its true gradient.
     """
     R, q = _camera_points(T_cam_world, X)
-    pred, Jp = project_with_jacobian(camera, q)  # (n, 2), (n, 2, 3)
+    pred, Jp = camera.project_with_jacobian(q)  # (n, 2), (n, 2, 3)
     e = weight[:, None] * (pred - uv)
     A = weight[:, None, None] * jnp.sum(Jp[:, :, :, None] * R[None, None, :, :], axis=2)
     Jw = -matmul(A, skew(X))

@@ -2,7 +2,9 @@ r"""Camera calibration from chessboard images (DESIGN §5).
 
 - **Perspective** (and a PTZ camera at one zoom): `cv2.findChessboardCorners`,
   `cv2.cornerSubPix` and `cv2.calibrateCameraExtended` into a [`jaxloc.PinholeCamera`][]
-  ([`jaxloc.calibrate_pinhole`][]).
+  ([`jaxloc.calibrate_pinhole`][]; Brown--Conrady or OpenCV's rational model).
+- **PTZ** over its zoom range: one perspective calibration per zoom step, gathered into a
+  [`jaxloc.ZoomTable`][] ([`jaxloc.calibrate_ptz`][]).
 - **Omnidirectional** (Mei's unified model, [`jaxloc.OmniCamera`][]): the
   `opencv-python-headless` wheel has no `cv2.omnidir`, so jaxloc fits the model itself
   ([`jaxloc.calibrate_omni`][]): closed-form initialization (Mei & Rives 2007: with
@@ -33,7 +35,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 from .._cameras.files import camera_to_dict
-from .._cameras.models import AbstractCamera, OmniCamera, PinholeCamera
+from .._cameras.models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera, ZoomTable
 
 
 # --------------------------------------------------------------------------------------
@@ -188,6 +190,7 @@ def calibrate_pinhole(
     fix_aspect_ratio: bool = False,
     fix_k3: bool = False,
     zero_tangent: bool = False,
+    rational: bool = False,
     window: int = 11,
 ) -> Calibration:
     r"""Calibrate a perspective camera (or a PTZ camera at one zoom) with OpenCV.
@@ -200,10 +203,14 @@ def calibrate_pinhole(
     - `fix_aspect_ratio`: `cv2.CALIB_FIX_ASPECT_RATIO` (`fx = fy`). Keyword only, as are
       the following.
     - `fix_k3`, `zero_tangent`: `cv2.CALIB_FIX_K3`, `cv2.CALIB_ZERO_TANGENT_DIST`.
+    - `rational`: `cv2.CALIB_RATIONAL_MODEL`: the 8-coefficient rational model
+      `(k1, k2, p1, p2, k3, k4, k5, k6)` (wide-angle lenses; needs many well-spread
+      views).
     - `window`: `cornerSubPix` half window (px), see [`jaxloc.find_corners`][].
 
-    **Returns:** a [`jaxloc.Calibration`][] whose camera is a [`jaxloc.PinholeCamera`][].
-    Raises `ValueError` if fewer than 3 images show the board.
+    **Returns:** a [`jaxloc.Calibration`][] whose camera is a [`jaxloc.PinholeCamera`][]
+    (`dist` of shape `(5,)`, or `(8,)` with `rational`). Raises `ValueError` if fewer
+    than 3 images show the board.
     """
     board = check_board(board)
     obj = object_points(board, square).astype(np.float32)
@@ -221,15 +228,20 @@ def calibrate_pinhole(
         flags |= cv2.CALIB_FIX_K3
     if zero_tangent:
         flags |= cv2.CALIB_ZERO_TANGENT_DIST
+    if rational:
+        flags |= cv2.CALIB_RATIONAL_MODEL
+    n_dist = 8 if rational else 5
     img_pts = [c.astype(np.float32).reshape(-1, 1, 2) for _, c, _ in found]
     K0 = np.eye(3)
     out = cv2.calibrateCameraExtended(
-        [obj] * len(found), img_pts, tuple(size), K0, np.zeros(5), flags=flags
+        [obj] * len(found), img_pts, tuple(size), K0, np.zeros(n_dist), flags=flags
     )
     rms, K, dist, rvecs, tvecs, std_in, _, per_view = out
-    camera = PinholeCamera.from_opencv(K, dist.ravel()[:5], tuple(int(x) for x in size))
-    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"]
-    std = {n: float(v) for n, v in zip(names, np.asarray(std_in).ravel()[:9])}
+    camera = PinholeCamera.from_opencv(K, dist.ravel()[:n_dist], tuple(int(x) for x in size))
+    # OpenCV's order of the intrinsics' deviations: fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6 ...
+    names = ["fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"]
+    names = names[: 4 + n_dist]
+    std = {n: float(v) for n, v in zip(names, np.asarray(std_in).ravel()[: len(names)])}
     if fix_aspect_ratio:
         # OpenCV reports the common focal length's deviation under fy only.
         std["fx"] = std["fy"]
@@ -248,6 +260,121 @@ def calibrate_pinhole(
         used=[n for n, _, _ in found],
         rejected=missing,
     )
+
+
+# --------------------------------------------------------------------------------------
+# PTZ calibration over the zoom range.
+
+
+@dataclasses.dataclass
+class ZoomCalibration:
+    """Result of [`jaxloc.calibrate_ptz`][].
+
+    **Fields:**
+
+    - `camera`: a [`jaxloc.PTZCamera`][] with the calibrated [`jaxloc.ZoomTable`][]
+      (`pan = tilt = 0`, `zoom` at the first step).
+    - `zooms`: the calibrated zoom steps, increasing.
+    - `steps`: the [`jaxloc.Calibration`][] of each step (same order), with its
+      [`jaxloc.PinholeCamera`][], reprojection RMS and standard deviations.
+    """
+
+    camera: PTZCamera
+    zooms: list[float]
+    steps: list[Calibration]
+
+    def summary(self) -> dict[str, Any]:
+        """Plain-Python summary (JSON-ready): the table and each step's summary."""
+        t = self.camera.zoom_table
+        return {
+            "model": "ptz",
+            "distortion": self.camera.distortion,
+            "image_width": self.camera.image_size[0],
+            "image_height": self.camera.image_size[1],
+            "zoom_table": {
+                "zooms": [float(z) for z in np.asarray(t.zooms)],
+                "fx": np.asarray(t.fx, np.float64).tolist(),
+                "fy": np.asarray(t.fy, np.float64).tolist(),
+                "cx": np.asarray(t.cx, np.float64).tolist(),
+                "cy": np.asarray(t.cy, np.float64).tolist(),
+                "distortion_coefficients": np.asarray(t.dist, np.float64).tolist(),
+            },
+            "steps": [dict(zoom=z, **c.summary()) for z, c in zip(self.zooms, self.steps)],
+        }
+
+
+def calibrate_ptz(
+    image_sets_by_zoom: Any,
+    board: tuple[int, int],
+    square: float,
+    **kwargs: Any,
+) -> ZoomCalibration:
+    r"""Calibrate a PTZ camera at several zoom steps into a [`jaxloc.ZoomTable`][].
+
+    Each zoom step's images are calibrated on their own with
+    [`jaxloc.calibrate_pinhole`][] (pan and tilt do not matter: hold them still while
+    the board moves, or move them, the board poses absorb it); the intrinsics and
+    distortion of the steps make the table, which the camera interpolates in between
+    (focal lengths in `1/f`, the rest linearly; see [`jaxloc.ZoomTable`][]).
+
+    **Arguments:**
+
+    - `image_sets_by_zoom`: `{zoom: images}` or a sequence of `(zoom, images)` pairs,
+      at least two distinct zoom steps in `[0, 1]` (in the camera's own zoom units
+      mapped to `[0, 1]`, wide to tele); `images` as [`jaxloc.calibrate_pinhole`][]
+      takes them (at least 3 showing the board per step), all of the same size.
+    - `board`: inner corners `(cols, rows)`; `square`: square size (m).
+    - `**kwargs`: passed to [`jaxloc.calibrate_pinhole`][] for every step
+      (`fix_aspect_ratio`, `fix_k3`, `zero_tangent`, `rational`, `window`).
+
+    **Returns:** a [`jaxloc.ZoomCalibration`][]. Raises `ValueError` naming the zoom
+    step whose images fail.
+    """
+    if isinstance(image_sets_by_zoom, dict):
+        pairs = list(image_sets_by_zoom.items())
+    else:
+        try:
+            pairs = [(z, imgs) for z, imgs in image_sets_by_zoom]
+        except (TypeError, ValueError):
+            raise ValueError(
+                "`image_sets_by_zoom` must be a mapping {zoom: images} or a sequence of "
+                f"(zoom, images) pairs; got {type(image_sets_by_zoom).__name__}."
+            ) from None
+    zooms = []
+    for z, _ in pairs:
+        if isinstance(z, bool) or not isinstance(z, (int, float, np.integer, np.floating)) or not (
+            0.0 <= float(z) <= 1.0
+        ):
+            raise ValueError(f"Each zoom step must be a number in [0, 1]; got {z!r}.")
+        zooms.append(float(z))
+    if len(set(zooms)) != len(zooms):
+        raise ValueError(f"The zoom steps must be distinct; got {sorted(zooms)}.")
+    if len(zooms) < 2:
+        raise ValueError(
+            f"`calibrate_ptz` needs at least two zoom steps; got {len(zooms)}. A single zoom "
+            "is a pinhole calibration (`calibrate_pinhole`)."
+        )
+    order = np.argsort(zooms)
+    steps: list[Calibration] = []
+    for i in order:
+        try:
+            steps.append(calibrate_pinhole(pairs[i][1], board, square, **kwargs))
+        except ValueError as e:
+            raise ValueError(f"Zoom step {zooms[i]:g}: {e}") from None
+    sizes = {c.camera.image_size for c in steps}
+    if len(sizes) != 1:
+        raise ValueError(f"The images of the zoom steps have different sizes: {sorted(sizes)}.")
+    cams = [c.camera for c in steps]
+    table = ZoomTable(
+        [zooms[i] for i in order],
+        [float(c.fx) for c in cams],
+        [float(c.fy) for c in cams],
+        [float(c.cx) for c in cams],
+        [float(c.cy) for c in cams],
+        np.stack([np.asarray(c.dist, np.float64) for c in cams]),
+    )
+    camera = PTZCamera(zoom=zooms[order[0]], image_size=cams[0].image_size, zoom_table=table)
+    return ZoomCalibration(camera=camera, zooms=[zooms[i] for i in order], steps=steps)
 
 
 # --------------------------------------------------------------------------------------
@@ -307,7 +434,11 @@ def _unproject(camera: AbstractCamera, uv: Float[Array, "n 2"]) -> Float[Array, 
 
 
 def _omni_from_theta(theta, f0, image_size, skew):
+    # theta: (xi, fx, fy, cx, cy) / f0 except xi, (k1, k2, p1, p2), and skew / f0 when it
+    # is estimated (10 entries; else `skew` is the fixed value).
     xi, fx, fy, cx, cy = theta[0], theta[1] * f0, theta[2] * f0, theta[3] * f0, theta[4] * f0
+    if theta.shape[0] == 10:
+        skew = theta[9] * f0
     return OmniCamera(xi, fx, fy, cx, cy, skew=skew, dist=theta[5:9], elevation_min=-1.5,
                       elevation_max=1.5, image_size=image_size)  # fmt: skip
 
@@ -411,6 +542,7 @@ def calibrate_omni_corners(
     xi_init: float = 1.0,
     fix_xi: bool = False,
     fix_distortion: bool = False,
+    fix_skew: bool = True,
     max_steps: int = 200,
     names: list[str] | None = None,
 ) -> Calibration:
@@ -421,7 +553,7 @@ def calibrate_omni_corners(
     and column (straight lines, [Mei & Rives 2007]), median over lines; each board's pose
     from a homography between the board and the lifted bearings. Then one
     Levenberg--Marquardt solve (optimistix) over `xi, fx, fy, cx, cy, k1, k2, p1, p2`
-    (skew fixed at 0) and every board pose (`T exp(delta)`).
+    (and the skew with `fix_skew=False`) and every board pose (`T exp(delta)`).
 
     **Arguments:**
 
@@ -432,6 +564,8 @@ def calibrate_omni_corners(
       as are the following.
     - `xi_init`: initial mirror parameter used after the `xi = 1` focal estimate.
     - `fix_xi`, `fix_distortion`: hold those parameters at their initial values.
+    - `fix_skew`: hold the skew at 0 (default, as Kalibr's `omni` model, which has no
+      skew); `False` estimates it (OpenCV `omnidir`'s `K[0, 1]`).
     - `max_steps`: LM iteration limit.
     - `names`: label of each view.
 
@@ -462,11 +596,13 @@ def calibrate_omni_corners(
         gamma = gamma * (zbar + xi_init) / (zbar + 1.0)
     f0 = gamma
     theta0 = np.array([xi_init, 1.0, 1.0, cx0 / f0, cy0 / f0, 0, 0, 0, 0], np.float64)
-    free = np.ones(9, bool)
+    if not fix_skew:
+        theta0 = np.append(theta0, 0.0)
+    free = np.ones(theta0.shape[0], bool)
     if fix_xi:
         free[0] = False
     if fix_distortion:
-        free[5:] = False
+        free[5:9] = False
     uv = np.stack([np.where(np.isfinite(c), c, 0.0) for c in views])
     weight = np.stack([np.all(np.isfinite(c), -1).astype(np.float64) for c in views])
     (theta, deltas), result, steps = _omni_solve(
@@ -488,13 +624,14 @@ def calibrate_omni_corners(
     sigma2 = float((r**2).sum()) / dof
     cov = sigma2 * np.linalg.pinv(Jk.T @ Jk)
     std_k = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    std_theta = np.zeros(9)
+    std_theta = np.zeros(theta0.shape[0])
     std_theta[free] = std_k[: int(free.sum())]
-    scale = np.array([1, f0, f0, f0, f0, 1, 1, 1, 1])
-    std = {n: float(s * k) for n, s, k in zip(_OMNI_NAMES, std_theta, scale)}
+    scale = np.array([1, f0, f0, f0, f0, 1, 1, 1, 1, f0])
+    std = {n: float(s * k) for n, s, k in zip((*_OMNI_NAMES, "skew"), std_theta, scale)}
     theta = np.asarray(theta)
+    skew = theta[9] * f0 if theta.shape[0] == 10 else 0.0
     camera = OmniCamera(theta[0], theta[1] * f0, theta[2] * f0, theta[3] * f0, theta[4] * f0,
-                        dist=theta[5:9], image_size=(int(w), int(h)))  # fmt: skip
+                        skew=skew, dist=theta[5:9], image_size=(int(w), int(h)))  # fmt: skip
     poses = np.stack([
         np.asarray(jaxlie.manifold.rplus(jaxlie.SE3(jnp.asarray(T0[v])), deltas[v]).wxyz_xyz)
         for v in range(len(views))
