@@ -5,7 +5,9 @@ and 5): every camera model and distortion model, and the PTZ's zoom table, exact
 import json
 import os
 
+import cv2
 import equinox as eqx
+import jax.numpy as jnp
 import jaxloc
 import numpy as np
 import pytest
@@ -103,8 +105,6 @@ def test_a_ptz_file_holds_its_whole_zoom_table(tmp_path):
     assert np.shape(t["distortion_coefficients"]) == (3, 5)
     # The OpenCV file stores the table as a FileStorage map of matrices, readable by cv2.
     save_camera(cam, tmp_path / "ptz.yaml", "opencv")
-    import cv2
-
     fs = cv2.FileStorage(str(tmp_path / "ptz.yaml"), cv2.FILE_STORAGE_READ)
     np.testing.assert_array_equal(fs.getNode("zoom_table").getNode("fx").mat().ravel(), t["fx"])
     assert fs.getNode("model").string() == "ptz"
@@ -112,8 +112,8 @@ def test_a_ptz_file_holds_its_whole_zoom_table(tmp_path):
     # Each camera at any zoom is the same camera after the round trip.
     back = load_camera(tmp_path / "ptz.yaml")
     for z in (0.0, 0.2, 1 / 3, 0.9):
-        a = eqx.tree_at(lambda c: c.zoom, back, np.asarray(z))
-        b = eqx.tree_at(lambda c: c.zoom, cam, np.asarray(z))
+        a = eqx.tree_at(lambda c: c.zoom, back, jnp.asarray(z))
+        b = eqx.tree_at(lambda c: c.zoom, cam, jnp.asarray(z))
         assert bool(eqx.tree_equal(a.pinhole(), b.pinhole()))
 
 
@@ -492,3 +492,69 @@ def test_camchains_are_read_with_kalibrs_rules(tmp_path, change, match):
         for name in sorted(chain):  # a camera's own entry is checked when it is read
             load_camera(path, name=name)
     assert f"`{path}`" in str(info.value)
+
+
+# --------------------------------------------------------------------------------------
+# `jaxloc calibrate --model ptz`: one camera file with the whole zoom table.
+
+
+@pytest.fixture
+def fake_ptz_calibration(tmp_path, monkeypatch):
+    """`jaxloc calibrate --model ptz` over three (empty) image folders, with
+    `calibrate_ptz` replaced by one returning `CAMERAS["ptz_table_rational"]`'s table
+    (tests/test_calibrate_ptz.py runs the real calibration on rendered images)."""
+    import argparse
+
+    import jaxloc._vision.calibrate as calibrate_module
+    from jaxloc._cli.images import register
+    from jaxloc._vision.calibrate import Calibration, ZoomCalibration
+
+    camera = eqx.tree_at(lambda c: c.zoom, CAMERAS["ptz_table_rational"], jnp.asarray(0.0))
+    t = camera.zoom_table
+    zooms = [float(z) for z in np.asarray(t.zooms)]
+
+    def fake_calibrate_ptz(sets, board, square, **kwargs):
+        assert [z for z, _ in sets] == zooms and kwargs["rational"]
+        steps = [
+            Calibration(jaxloc.PinholeCamera(t.fx[k], t.fy[k], t.cx[k], t.cy[k], t.dist[k]),
+                        0.1 + k, {"fx": 0.01}, [0.1], np.zeros((1, 7)), list(images), [])
+            for k, (_, images) in enumerate(sets)
+        ]  # fmt: skip
+        return ZoomCalibration(camera=camera, zooms=zooms, steps=steps)
+
+    monkeypatch.setattr(calibrate_module, "calibrate_ptz", fake_calibrate_ptz)
+    argv = ["calibrate", "--model", "ptz", "--board", "9x6", "--square", "0.03", "--rational"]
+    for k, z in enumerate(zooms):
+        folder = tmp_path / f"zoom{k}"
+        folder.mkdir()
+        cv2.imwrite(str(folder / "a.png"), np.zeros((8, 8), np.uint8))
+        argv += ["--zoom", repr(z), str(folder)]
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    return lambda extra: parser.parse_args(argv + extra), camera
+
+
+@pytest.mark.parametrize("fmt, suffix", FORMATS)
+def test_calibrate_ptz_writes_one_file_with_the_whole_table(tmp_path, fake_ptz_calibration,
+                                                            fmt, suffix, capsys):  # fmt: skip
+    # On df51333 `jaxloc calibrate --model ptz` wrote one pinhole file per zoom step.
+    parse, camera = fake_ptz_calibration
+    out = tmp_path / f"ptz{suffix}"
+    args = parse(["--out", str(out), "--format", fmt, "--json", str(tmp_path / "report.json")])
+    assert args.func(args) == 0
+    files = sorted(p.name for p in tmp_path.iterdir() if p.is_file())
+    assert files == sorted([out.name, "report.json"])
+    back = load_camera(out)
+    assert bool(eqx.tree_equal(back, camera, typematch=True))
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["zoom_table"] == camera_to_dict(back)["zoom_table"]
+    assert [s["zoom"] for s in report["steps"]] == report["zoom_table"]["zooms"]
+    assert f"wrote {out}" in capsys.readouterr().out
+
+
+def test_calibrate_ptz_refuses_kalibr_before_calibrating(tmp_path, fake_ptz_calibration):
+    parse, _ = fake_ptz_calibration
+    args = parse(["--out", str(tmp_path / "k.yaml"), "--format", "kalibr"])
+    with pytest.raises(ValueError, match="--model ptz writes one camera file .* Kalibr"):
+        args.func(args)
+    assert not (tmp_path / "k.yaml").exists()
