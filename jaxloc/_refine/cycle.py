@@ -221,13 +221,16 @@ def _optx_refine(T0_place, T0_over, data, rig, strategy, solver, settings):
 def _start(estimate: CycleEstimate, strategy: str):
     """The estimate's placements as a start (finite: else the identity) and whether the
     refinement may run: the estimate is a usable start, successful or only flagged by the
-    fit gate (a refinement may find the consistent minimum the closed form missed)."""
+    fit gate (a refinement may find the consistent minimum the closed form missed), or
+    `ambiguous` with its rival minima as the other starts (the multi-start decides)."""
     T0_place, T0_over = estimate_placements(estimate.poses, strategy)
     finite = jnp.all(jnp.isfinite(T0_place)) & jnp.all(jnp.isfinite(T0_over))
     ident = jnp.zeros(7, T0_place.dtype).at[0].set(1.0)
     T0_place = jnp.where(finite, T0_place, ident)
     T0_over = jnp.where(finite, T0_over, ident)
     usable = (estimate.result == RESULTS.successful) | (estimate.result == RESULTS.inconsistent_fit)
+    if estimate.alternatives is not None:
+        usable = usable | (estimate.result == RESULTS.ambiguous)
     return T0_place, T0_over, finite & usable
 
 
