@@ -133,6 +133,10 @@ from ._solvers.mutual import (
 from ._solvers.overhead import solve_overhead_pose as solve_overhead_pose
 from ._solvers.p3p import p3p as p3p, P3PSolution as P3PSolution
 from ._solvers.pose_problem import PoseSolution as PoseSolution
+from ._study.cluster import (
+    run_study_on_ray as run_study_on_ray,
+    stream_study_on_ray as stream_study_on_ray,
+)
 from ._study.engine import (
     balanced_chunk_size as balanced_chunk_size,
     MICRO_BATCH as MICRO_BATCH,

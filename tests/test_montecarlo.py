@@ -237,22 +237,6 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
     _same(reference, multi)
 
 
-@pytest.mark.slow
-@pytest.mark.timeout(900)
-def test_chunks_as_ray_tasks_match_a_local_study(reference):
-    """Each chunk as one Ray task (README: studies larger than one machine)."""
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        task = ray.remote(jaxloc.run_chunk)
-        scenario = jaxloc.Scenario.paper(strategy="sequential")
-        chunks = ray.get([task.remote(scenario, SEED, c, 32, METHODS) for c in range(N // 32)])
-    finally:
-        ray.shutdown()
-    merged = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-    _same(reference, merged)
-
-
 def test_bound_samples_follow_the_bound(reference):
     from jaxloc._study.trial import _psd_cholesky3
 

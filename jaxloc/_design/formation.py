@@ -46,11 +46,11 @@ from .._sim.simulate import camera_points, overhead_frames
 from .._sim.world import body_frame_on_surface, formation_xy
 
 
-#: Names of the fields of a [`jaxloc.Formation`][], in order.
 FORMATION_FIELDS = (
     "base", "side", "headings", "overhead_xy", "overhead_heading", "pan", "tilt", "zoom",
     "move_mean", "moves", "initial_xy",
 )  # fmt: skip
+"""Names of the fields of a [`jaxloc.Formation`][], in order."""
 #: The optional fields (`None` or an array).
 OPTIONAL_FIELDS = ("moves", "initial_xy")
 _ARRAY_FIELDS = tuple(n for n in FORMATION_FIELDS if n not in OPTIONAL_FIELDS)
