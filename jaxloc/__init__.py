@@ -195,4 +195,14 @@ from ._vision.render import (
 from ._vision.team import load_team as load_team, save_team as save_team, Team as Team
 
 
-__version__ = "0.1.0"
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jaxloc")
+    except PackageNotFoundError:  # a source tree that is not installed
+        return "0.0.0+unknown"
+
+
+__version__ = _package_version()
+"""jaxloc's version, from the installed package's metadata."""

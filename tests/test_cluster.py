@@ -5,6 +5,7 @@ Ray is a test dependency (the `tests` extra installs `jaxloc[cluster]`): this te
 CI and is never skipped.
 """
 
+import json
 import math
 import os
 import sys
@@ -13,6 +14,8 @@ import jaxloc
 import numpy as np
 import pytest
 import ray
+from jaxloc._cli.main import main
+from jaxloc._core.files import dumps_json
 from jaxloc._study import cluster
 
 
@@ -87,3 +90,17 @@ def test_a_study_on_two_ray_workers_survives_a_lost_task(two_workers, tmp_path):
     on_ray = jaxloc.run_study_on_ray(scenario, N, **kwargs)
     for k in local:
         np.testing.assert_array_equal(on_ray[k], local[k], err_msg=k)
+
+    # The command line: `jaxloc simulate --ray --stream` (Ray already running here, so
+    # --ray uses this cluster) prints and writes the local summary, bit for bit.
+    path, report = str(tmp_path / "scenario.yaml"), str(tmp_path / "report.json")
+    jaxloc.save_scenario(scenario, path)
+    args = ["simulate", "--scenario", path, "--trials", str(N), "--seed", str(SEED),
+            "--chunk-size", str(CHUNK), "--methods", ",".join(METHODS), "--quiet"]  # fmt: skip
+    assert main(args + ["--ray", "--stream", "--json", report]) == 0
+    with open(report) as f:
+        got = json.load(f)
+    assert got["ray"].startswith("Ray cluster: 2 CPUs")
+    summary = got["strategies"]["sequential"]
+    del summary["seconds"]
+    assert _bits(summary) == _bits(json.loads(dumps_json(local_summary)))
