@@ -220,7 +220,7 @@ def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
         say()
         write_report(args.json, report, quiet=args.quiet)
     if args.plot:
-        plot_studies(studies, methods, args.plot)
+        plot_studies({s: studies[s] for s in scenarios}, methods, args.plot)
         say(f"wrote {args.plot}")
     return _study_exit_code(summaries)
 
@@ -495,15 +495,16 @@ def main(argv: list[str] | None = None) -> int:
     return its exit code (see `jaxloc --help`); errors are one line on stderr. JAX's
     configuration is left alone (the dtype is the caller's: float64 only if JAX's x64
     mode is on). Ctrl-C stops the command between two steps of JAX's work; the `jaxloc`
-    program ([`console_main`][]) stops at once."""
+    program ([`console_main`][jaxloc._cli.main.console_main]) stops at once."""
     return _main(argv, threaded=False)
 
 
 def console_main() -> int:
-    """The `jaxloc` program: [`main`][] in float64 (JAX's x64 mode), with every core
-    exposed as a JAX CPU device, the persistent compilation cache on, and the command in
-    a worker thread, so that Ctrl-C stops it at once, with one line and exit code 130. A
-    study run with `--out` is left resumable: every file is written atomically."""
+    """The `jaxloc` program: [`main`][jaxloc._cli.main.main] in float64 (JAX's x64 mode),
+    with every core exposed as a JAX CPU device, the persistent compilation cache on, and
+    the command in a worker thread, so that Ctrl-C stops it at once, with one line and
+    exit code 130. A study run with `--out` is left resumable: every file is written
+    atomically."""
     try:
         import jax
 

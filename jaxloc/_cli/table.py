@@ -202,7 +202,8 @@ def _cdf_panel(ax, study: dict, methods, ci: int, panel: tuple) -> bool:
         every_ok = np.all(study["status"] == 0, axis=1)
         curves.append((scale * study[bound_key][every_ok, ci], "Cramér–Rao bound",
                        _BOUND_STYLE))  # fmt: skip
-    positive = [x[x > 0] for x, _, _ in curves]
+    # The reference robot's errors are zero up to round-off (1e-16 deg): nothing to plot.
+    positive = [x[x > 1e-9] for x, _, _ in curves]
     if not any(p.size for p in positive):
         return False
     for x, label, style in curves:
