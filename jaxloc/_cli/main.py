@@ -232,10 +232,14 @@ def _cluster(args):
     if args.ray is None:
         yield None
         return
+    # No Ray call may start a cluster of its own (Ray's auto-init): after Ctrl-C the
+    # command's thread may still call Ray while the main thread disconnects. Read by Ray
+    # when it is imported, here (`connect`).
+    os.environ.setdefault("RAY_ENABLE_AUTO_CONNECT", "0")
     from .._study.cluster import connect, describe_cluster, disconnect
 
     address = None if args.ray == LOCAL_RAY else args.ray
-    started = connect(address, quiet=args.quiet)
+    started = connect(address)
     try:
         yield describe_cluster()
     finally:
@@ -499,6 +503,20 @@ def main(argv: list[str] | None = None) -> int:
     return _main(argv, threaded=False)
 
 
+def _stop_ray(timeout: float = 15.0) -> None:
+    """Disconnect from Ray if a --ray command is still connected (stopping the local
+    cluster it started): `os._exit` skips Ray's own exit handler, which would leave the
+    cluster's agent processes behind. Bounded by `timeout`: an interrupted command exits
+    anyway."""
+    if "ray" not in sys.modules:
+        return
+    from .._study.cluster import disconnect
+
+    stopping = threading.Thread(target=disconnect, daemon=True)
+    stopping.start()
+    stopping.join(timeout)
+
+
 def console_main() -> int:
     """The `jaxloc` program: [`main`][jaxloc._cli.main.main] in float64 (JAX's x64 mode),
     with every core exposed as a JAX CPU device, the persistent compilation cache on, and
@@ -516,6 +534,7 @@ def console_main() -> int:
         print("jaxloc: interrupted.", file=sys.stderr)
         code = EXIT_INTERRUPTED
     if code == EXIT_INTERRUPTED:
+        _stop_ray()
         sys.stdout.flush()
         if sys.stdout.isatty():
             sys.stdout.write("\x1b[?25h\n")  # show the cursor a progress bar hid

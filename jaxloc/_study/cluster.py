@@ -54,7 +54,7 @@ def _ray():
     return ray
 
 
-def connect(address: str | None = None, *, quiet: bool = False) -> bool:
+def connect(address: str | None = None) -> bool:
     """Connect this process to a Ray cluster: the one at `address` (e.g.
     `"ray://head:10001"` or `"head:6379"`; `"auto"`: the cluster this machine belongs to),
     or, with `address=None`, a new local cluster with one worker per core. Does nothing if
@@ -64,14 +64,20 @@ def connect(address: str | None = None, *, quiet: bool = False) -> bool:
     if ray.is_initialized():
         return False
     import logging
+    import warnings
 
-    level = logging.ERROR if quiet else logging.WARNING
-    kwargs: dict[str, Any] = dict(log_to_driver=False, logging_level=level)
+    # Ray's start-up notes (e.g. that a command's worker thread cannot take SIGTERM) are
+    # not the user's business; its errors are, as exceptions.
+    kwargs: dict[str, Any] = dict(log_to_driver=False, logging_level=logging.ERROR)
     try:
-        if address is None:
-            ray.init(include_dashboard=False, **kwargs)
-        else:
-            ray.init(address=address, **kwargs)
+        with warnings.catch_warnings():
+            # Ray starts its processes with fork + exec (subprocess), which JAX's fork
+            # warning cannot tell from a bare fork.
+            warnings.filterwarnings("ignore", "os.fork", RuntimeWarning)
+            if address is None:
+                ray.init(include_dashboard=False, **kwargs)
+            else:
+                ray.init(address=address, **kwargs)
     except (ConnectionError, RuntimeError, ValueError) as e:
         where = "a local Ray cluster" if address is None else f"the Ray cluster at `{address}`"
         raise ClusterError(f"cannot start or reach {where}: {' '.join(str(e).split())}") from None
@@ -168,8 +174,11 @@ def ray_runner(
                 while nxt < len(chunks):
                     want = chunks[nxt]
                     while want not in finished:
+                        if not ray.is_initialized():  # else Ray's next call would start a
+                            # new local cluster (its auto-init)
+                            raise ClusterError("disconnected from the Ray cluster.")
                         waiting = [r for c, r in refs.items() if c not in finished]
-                        ready, _ = ray.wait(waiting, num_returns=1)
+                        ready, _ = ray.wait(waiting, num_returns=1, timeout=1.0)
                         for c, r in refs.items():
                             if r in ready:
                                 finished.add(c)
@@ -182,10 +191,12 @@ def ray_runner(
                         refs[c] = submit(c)
                     yield arrays
             except ray.exceptions.RayError as e:
-                for r in refs.values():
-                    ray.cancel(r, force=True)
+                if ray.is_initialized():
+                    for r in refs.values():
+                        ray.cancel(r, force=True)
                 raise ClusterError(
-                    f"a chunk task failed on the Ray cluster after {max_retries} retries: "
+                    f"a chunk task failed on the Ray cluster (a lost worker is retried "
+                    f"{max_retries} times, a Python error is not): "
                     f"{' '.join(str(e).split())[:300]}"
                 ) from None
 
