@@ -223,6 +223,7 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
         import os
         os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=8"
         import jax, numpy as np, jaxloc
+        jax.config.update("jax_enable_x64", True)  # as the reference (conftest.py)
         assert jax.device_count() == 8, jax.devices()
         s = jaxloc.Scenario.paper(strategy="sequential")
         r = jaxloc.run_study(
@@ -238,12 +239,12 @@ def test_eight_host_devices_give_the_same_numbers(reference, tmp_path):
 
 
 def test_bound_samples_follow_the_bound(reference):
-    from jaxloc._study.trial import _psd_cholesky3
+    from jaxloc._core.linalg import psd_cholesky3
 
     rng = np.random.default_rng(0)
     A = rng.standard_normal((3, 3))
     for P in (A @ A.T, A[:, :2] @ A[:, :2].T, np.zeros((3, 3))):  # full rank, rank 2, zero
-        L = np.asarray(_psd_cholesky3(jax.numpy.asarray(P)))
+        L = np.asarray(psd_cholesky3(jax.numpy.asarray(P)))
         np.testing.assert_allclose(L @ L.T, P, atol=1e-12)
         assert np.allclose(L, np.tril(L))
     # The draws: mean square = trace, median of |x| that of the chi distribution.
