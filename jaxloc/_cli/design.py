@@ -16,15 +16,17 @@ from .common import (
     EXIT_NO_RESULT,
     EXIT_OK,
     HelpFormatter,
+    quiet_option,
     write_report,
 )
 
 
-def register(sub: argparse._SubParsersAction, parents=()) -> None:
+def register(sub: argparse._SubParsersAction, parents=None) -> None:
     """Add the `design` subcommand to `jaxloc`'s sub-parsers (with the options of the
-    `parents` parsers)."""
+    `parents` parsers; default: `--quiet`)."""
+    parents = [quiet_option()] if parents is None else list(parents)
     p = sub.add_parser(
-        "design", parents=list(parents), epilog=EXIT_CODES_HELP,
+        "design", parents=parents, epilog=EXIT_CODES_HELP,
         formatter_class=HelpFormatter,
         help="search for a formation that minimizes the expected localization error",
         description=(

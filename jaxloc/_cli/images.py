@@ -18,6 +18,7 @@ from .common import (
     EXIT_NO_RESULT,
     EXIT_OK,
     HelpFormatter,
+    quiet_option,
     write_report,
 )
 
@@ -170,7 +171,9 @@ def _calibrate_ptz(args, board, pinhole_options) -> int:
     # the table as a whole is in the --json report.
     for z, step in zip(cal.zooms, cal.steps):
         path = _zoom_out_path(args.out, z)
-        extra = {"rms_px": step.rms, "num_images": len(step.used), "zoom": z}
+        # The zoom is in the file's name and the --json report; a camera file's extra keys
+        # are those every reader knows (`jaxloc._cameras.files.INFO_KEYS`).
+        extra = {"rms_px": step.rms, "num_images": len(step.used)}
         save_camera(step.camera, path, args.format,
                     extra=None if args.format == "kalibr" else extra)  # fmt: skip
         c = step.camera
@@ -211,11 +214,12 @@ def _cmd_localize(args) -> int:
     return EXIT_OK if d["status"] == "successful" else EXIT_NO_RESULT
 
 
-def register(sub: argparse._SubParsersAction, parents=()) -> None:
+def register(sub: argparse._SubParsersAction, parents=None) -> None:
     """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers (each with
-    the options of the `parents` parsers)."""
+    the options of the `parents` parsers; default: `--quiet`)."""
+    parents = [quiet_option()] if parents is None else list(parents)
     p = sub.add_parser(
-        "calibrate", parents=list(parents), epilog=EXIT_CODES_HELP,
+        "calibrate", parents=parents, epilog=EXIT_CODES_HELP,
         formatter_class=HelpFormatter,
         help="calibrate a camera from chessboard images (pinhole, omni, or ptz over zooms)",
         description=(
@@ -274,7 +278,7 @@ def register(sub: argparse._SubParsersAction, parents=()) -> None:
                    "folders")  # fmt: skip
     p.set_defaults(func=_cmd_calibrate)
     p = sub.add_parser(
-        "localize", parents=list(parents), epilog=EXIT_CODES_HELP,
+        "localize", parents=parents, epilog=EXIT_CODES_HELP,
         formatter_class=HelpFormatter,
         help="all four poses from a team's images of one cycle",
         description=(
