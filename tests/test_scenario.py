@@ -148,7 +148,8 @@ BAD = [
     ("cameras.overhead.camera_matrix", [[-600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0, 0, 1]],
      r"`cameras.overhead` is invalid: .*fx.*-600"),
     ("cameras.overhead.distortion_coefficients", [0.0, 1.0],
-     r"`cameras.overhead`: `distortion_coefficients` must be a list of 4 or 5 numbers"),
+     r"`cameras.overhead`: `distortion_coefficients` must hold 4 \(k1, k2, p1, p2\) or 5 "
+     r"\(k1, k2, p1, p2, k3\) coefficients for `distortion_model: radtan`; got \[0.0, 1.0\]"),
     ("cameras.overhead.image_width", [640], r"`cameras.overhead`: `image_width` must be a "
      r"positive integer"),
     ("cameras.ptz.zoom", 1.5, r"`cameras.ptz` is invalid: .*zoom.*1.5"),

@@ -77,11 +77,6 @@ def _check_model_options(args) -> None:
             )
 
 
-def _zoom_out_path(out: str, zoom: float) -> str:
-    stem, suffix = os.path.splitext(out)
-    return f"{stem}_zoom{zoom:.3f}{suffix}"
-
-
 def _cmd_calibrate(args) -> int:
     from .._cameras.files import save_camera
     from .._vision.calibrate import (
@@ -95,6 +90,12 @@ def _cmd_calibrate(args) -> int:
         raise ValueError(f"`--square` must be a positive length in metres; got {args.square}.")
     _check_model_options(args)
     check_outputs(args, files=("out", "json"))
+    if args.model == "ptz" and args.format == "kalibr":
+        raise ValueError(
+            "--model ptz writes one camera file holding the whole zoom table, which Kalibr's "
+            "format cannot hold (a Kalibr camera has one set of intrinsics); use --format "
+            "opencv, json or yaml."
+        )
     if args.rational and args.format == "kalibr":
         raise ValueError(
             "`--rational` cannot be saved with `--format kalibr` (Kalibr's radtan has 4 "
@@ -167,23 +168,21 @@ def _calibrate_ptz(args, board, pinhole_options) -> int:
     n_img = sum(len(imgs) for _, imgs in sets)
     print(f"ptz calibration at {len(cal.zooms)} zoom steps from {n_img} images "
           f"(board {board[0]}x{board[1]}, square {args.square} m)")  # fmt: skip
-    # One camera file per zoom step (each a complete pinhole calibration at that zoom);
-    # the table as a whole is in the --json report.
+    # One camera file: the PTZ with its whole zoom table (each step's report, with its
+    # standard deviations, is in the --json report).
+    extra = {"rms_px": [step.rms for step in cal.steps],
+             "num_images": [len(step.used) for step in cal.steps]}  # fmt: skip
+    save_camera(cal.camera, args.out, args.format, extra=extra)
     for z, step in zip(cal.zooms, cal.steps):
-        path = _zoom_out_path(args.out, z)
-        # The zoom is in the file's name and the --json report; a camera file's extra keys
-        # are those every reader knows (`jaxloc._cameras.files.INFO_KEYS`).
-        extra = {"rms_px": step.rms, "num_images": len(step.used)}
-        save_camera(step.camera, path, args.format,
-                    extra=None if args.format == "kalibr" else extra)  # fmt: skip
         c = step.camera
         print(f"  zoom {z:.3f}: fx {float(c.fx):.2f}, fy {float(c.fy):.2f}, "
               f"cx {float(c.cx):.2f}, cy {float(c.cy):.2f}, dist "
               f"{json.dumps(np.asarray(c.dist).round(6).tolist())}, RMS {step.rms:.4f} px "
               f"({len(step.used)} images)")  # fmt: skip
-        chatter(args)(f"    wrote {path}")
         if step.rejected:
             print(f"    no board found in: {', '.join(step.rejected)}")
+    chatter(args)(f"  wrote {args.out} ({args.format or 'auto'}): one ptz camera with the "
+                  f"{len(cal.zooms)}-step zoom table")  # fmt: skip
     if args.json:
         write_report(args.json, cal.summary(), quiet=args.quiet)
         chatter(args)(f"  zoom table and per-step reports: {args.json}")
@@ -240,8 +239,8 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
     p.add_argument("--square", type=float, required=True, metavar="METRES",
                    help="side of a chessboard square")  # fmt: skip
     p.add_argument("--out", default="camera.yaml", metavar="FILE",
-                   help="camera file to write (ptz: one per zoom step, FILE's name with "
-                   "_zoomZ before its suffix)")  # fmt: skip
+                   help="camera file to write (ptz: one file, the camera with its whole "
+                   "zoom table; rms_px and num_images per zoom step)")  # fmt: skip
     p.add_argument("--format", choices=("opencv", "json", "yaml", "kalibr"), default=None,
                    help="camera file format (default: from the suffix; OpenCV YAML)")  # fmt: skip
     p.add_argument("--window", type=int, default=None,
