@@ -5,7 +5,17 @@ Solvers and statistics are meant to run in float64: turn on JAX's 64-bit mode be
 creating any array, `jax.config.update("jax_enable_x64", True)` (the `jaxloc` command
 does). Without it, JAX's default float is float32 and so is everything jaxloc builds
 (scenarios, rigs, studies); float32 inputs stay float32 either way.
+
+One exception, for the CPU backend only: with jaxlib 0.10.2 or 0.11.0, importing jaxloc
+before JAX's backend starts adds `--xla_cpu_experimental_ynn_fusion_type=` to `XLA_FLAGS`
+(unless `XLA_FLAGS` already sets it), turning off XLA:CPU's YNN fusions, which crash those
+releases at random on x86-64 (jax-ml/jax#39257, #40412).
 """
+
+from ._core.xla_workaround import avoid_ynn_crash as _avoid_ynn_crash
+
+
+_avoid_ynn_crash()
 
 from ._cameras.files import (
     camera_from_dict as camera_from_dict,

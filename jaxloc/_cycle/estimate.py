@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.results import RESULTS
+from .layout import first_sighting
 from .observations import CyclePoses
 
 
@@ -78,6 +79,25 @@ class CycleStarts(eqx.Module):
     scales: Float[Array, "k steps"]
     T_world_overhead: Float[Array, "k 7"]
     ok: Bool[Array, " k"]
+
+
+def start_placements(starts: CycleStarts, scales, strategy: str, T0_place):
+    """The starts as placements: `(T_place (k, placements, 7), T_over (k, 7), active
+    (k,))`, each start's formation the estimate's placements `T0_place` rescaled from the
+    estimate's `scales` to the start's (identity where a start does not exist)."""
+    ks, _ = first_sighting(strategy)
+    factor = starts.scales / scales[None]
+    T_place = jnp.concatenate(
+        [jnp.broadcast_to(T0_place[:, :4], (factor.shape[0],) + T0_place[:, :4].shape),
+         T0_place[None, :, 4:] * factor[:, ks, None]],
+        axis=-1,
+    )  # fmt: skip
+    T_over = starts.T_world_overhead
+    active = starts.ok & jnp.all(jnp.isfinite(T_place), axis=(1, 2))
+    active = active & jnp.all(jnp.isfinite(T_over), axis=1)
+    ident = jnp.zeros(7, T_over.dtype).at[0].set(1.0)
+    T_place = jnp.where(active[:, None, None], T_place, T0_place[None])
+    return T_place, jnp.where(active[:, None], T_over, ident[None]), active
 
 
 class CycleEstimate(eqx.Module):
