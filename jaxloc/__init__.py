@@ -144,6 +144,10 @@ from ._solvers.mutual import (
 from ._solvers.overhead import solve_overhead_pose as solve_overhead_pose
 from ._solvers.p3p import p3p as p3p, P3PSolution as P3PSolution
 from ._solvers.pose_problem import PoseSolution as PoseSolution
+from ._study.cluster import (
+    run_study_on_ray as run_study_on_ray,
+    stream_study_on_ray as stream_study_on_ray,
+)
 from ._study.engine import (
     balanced_chunk_size as balanced_chunk_size,
     MICRO_BATCH as MICRO_BATCH,
@@ -202,4 +206,14 @@ from ._vision.render import (
 from ._vision.team import load_team as load_team, save_team as save_team, Team as Team
 
 
-__version__ = "0.1.0"
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jaxloc")
+    except PackageNotFoundError:  # a source tree that is not installed
+        return "0.0.0+unknown"
+
+
+__version__ = _package_version()
+"""jaxloc's version, from the installed package's metadata."""

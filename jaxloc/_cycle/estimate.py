@@ -117,10 +117,10 @@ class CycleEstimate(eqx.Module):
       overhead solver's `"planarity"`, `"collinearity"`, `"num_valid_candidates"`,
       `"rms_angular_error"`; a refinement adds `"num_steps"`, `"rms_pixel_error"` and, for
       a multi-start, `"start_picked"` and `"runner_up_chi2"`.
-    - `checks`: a [`FitCheck`][]: the gates' statistics and the status before them.
+    - `checks`: a [`jaxloc.FitCheck`][]: the gates' statistics and the status before them.
     - `covariance`: the first-order [`jaxloc.CycleCovariance`][] at the estimate (what the
       observability gate inverted; zeros where not positive definite).
-    - `alternatives`: a [`CycleStarts`][] (the concurrent strategy's closed form with the
+    - `alternatives`: a [`jaxloc.CycleStarts`][] (the concurrent strategy's closed form with the
       robust overhead solver) or `None`.
     """
 
