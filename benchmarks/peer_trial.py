@@ -683,8 +683,10 @@ def solve_pnp(world, points, pixels):
     try:
         ok, rvec, tvec = cv2.solvePnP(points, pixels, world.K, None, flags=cv2.SOLVEPNP_SQPNP)
     except cv2.error:  # degenerate input: a failed trial, not a crash
+        ok = False
+    if not ok or rvec is None or tvec is None:  # SQPnP found no solution
         return False, np.zeros(3), np.zeros(3)
-    return ok, rvec.reshape(3), tvec.reshape(3)
+    return True, rvec.reshape(3), tvec.reshape(3)
 
 
 def overhead_poses(world, points, pixels, todo):
@@ -950,7 +952,7 @@ def whole_trial(params, n, seed, refined, method, batch=1024):
     model = CycleModel(world)
     rng = np.random.default_rng(seed)
     errors = {"position": [], "rotation": [], "ok": [], "feasible": []}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     for start in range(0, n, batch):
         m = min(batch, n - start)
         obs, truth, feasible = simulate(world, rng, m)
@@ -962,25 +964,25 @@ def whole_trial(params, n, seed, refined, method, batch=1024):
         errors["rotation"].append(rot)
         errors["ok"].append(est["ok"])
         errors["feasible"].append(feasible)
-    seconds = time.perf_counter() - t0
-    return seconds, {k: np.concatenate(v) for k, v in errors.items()}
+    seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
+    return seconds, cpu, {k: np.concatenate(v) for k, v in errors.items()}
 
 
 def _whole_trial_task(args):
-    seconds, errors = whole_trial(*args)
-    return seconds, errors
+    return whole_trial(*args)
 
 
 def whole_trial_parallel(pool, processes, params, n, seed, refined, method):
     """The same, `n` trials split over `processes` worker processes (one per core): the
-    Monte Carlo a researcher would run with `multiprocessing`. Wall-clock seconds."""
+    Monte Carlo a researcher would run with `multiprocessing`. Wall-clock seconds and the
+    workers' CPU seconds."""
     share = [n // processes + (i < n % processes) for i in range(processes)]
     tasks = [(params, share[i], seed + 1000 * (i + 1), refined, method) for i in range(processes)]
     t0 = time.perf_counter()
     results = pool.map(_whole_trial_task, tasks)
     seconds = time.perf_counter() - t0
-    errors = {k: np.concatenate([r[1][k] for r in results]) for k in results[0][1]}
-    return seconds, errors
+    errors = {k: np.concatenate([r[2][k] for r in results]) for k in results[0][2]}
+    return seconds, sum(r[1] for r in results), errors
 
 
 # ======================================================================================
@@ -1094,14 +1096,15 @@ def jaxloc_side(strategy, seed, n_trials, check_seed=12345):
         jaxloc.run_chunk(sc, seed + 1, 0, chunk, methods)
         first = time.perf_counter() - t0
         mark(f"{strategy}: jaxloc run_study {'+'.join(methods)} start")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = jaxloc.run_study(sc, n_trials, seed=seed, chunk_size=chunk, methods=methods,
                                progress=False)  # fmt: skip
-        seconds = time.perf_counter() - t0
+        seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
         mark(f"{strategy}: jaxloc run_study {'+'.join(methods)} end")
         studies["+".join(methods)] = {
             "methods": list(methods), "trials": n_trials, "chunk_size": chunk,
             "first_chunk_s": first, "seconds": seconds, "trials_per_s": n_trials / seconds,
+            "cpu_seconds": cpu, "trials_per_cpu_s": n_trials / cpu,
             "errors": {k: out[k] for k in ("status", "position", "rotation", "position_vector")},
         }  # fmt: skip
     return {
@@ -1234,12 +1237,12 @@ def run_strategy(strategy, args, pool, processes):
     print("== peer estimators on the shared observations", flush=True)
     obs, feas = shared["obs"], shared["feasible"]
     mark(f"{strategy}: peer estimators start")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     est = closed_form(world, obs, feas)
-    t_closed = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t_closed, c_closed = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
     ref = refine(model, est, obs, est["ok"], method=args.scipy_method)
-    t_refine = time.perf_counter() - t0
+    t_refine, c_refine = time.perf_counter() - t0, time.process_time() - c0
     model_check = check_model(world, model, shared, est)
     n_fd = min(n, args.fd_trials)
     sub = np.zeros(n, bool)
@@ -1257,9 +1260,11 @@ def run_strategy(strategy, args, pool, processes):
     other_gap = np.max(np.abs(ref_other["t"][sub] - ref["t"][sub])) if n_sub else float("nan")
     mark(f"{strategy}: peer estimators end")
     peer_alone = {
-        "closed_form": {"seconds": t_closed, "trials_per_s": n / t_closed},
+        "closed_form": {"seconds": t_closed, "trials_per_s": n / t_closed,
+                        "trials_per_cpu_s": n / c_closed},
         "closed_form_plus_refinement": {
             "seconds": t_closed + t_refine, "trials_per_s": n / (t_closed + t_refine),
+            "trials_per_cpu_s": n / (c_closed + c_refine),
             "refinement_only_cycles_per_s": int(est["ok"].sum()) / t_refine,
             "jacobian": "analytic", "method": args.scipy_method,
             "nfev_median": float(np.median(ref["nfev"][est["ok"]])),
@@ -1352,8 +1357,9 @@ def run_strategy(strategy, args, pool, processes):
         label = "closed form + refinement" if refined else "closed form"
         m = n_whole[refined]
         mark(f"{strategy}: peer whole trial, {label}, start")
-        seconds, e = whole_trial(params, m, seed + 7, refined, args.scipy_method)
-        row = {"trials": m, "seconds_1_process": seconds, "trials_per_s_1_process": m / seconds}
+        seconds, cpu, e = whole_trial(params, m, seed + 7, refined, args.scipy_method)
+        row = {"trials": m, "seconds_1_process": seconds, "trials_per_s_1_process": m / seconds,
+               "trials_per_cpu_s_1_process": m / cpu}  # fmt: skip
         ok = e["ok"] & e["feasible"]
         row["feasible_fraction"] = float(e["feasible"].mean())
         row["ok_fraction"] = float(ok.mean())
@@ -1361,10 +1367,11 @@ def run_strategy(strategy, args, pool, processes):
                                      "rotation_rad": stats(e["rotation"][ok, ci])}
                                for ci, cam in enumerate(CAMERAS)}  # fmt: skip
         if pool is not None:
-            seconds_p, _ = whole_trial_parallel(pool, processes, params, m, seed + 11, refined,
-                                                args.scipy_method)
+            seconds_p, cpu_p, _ = whole_trial_parallel(pool, processes, params, m, seed + 11,
+                                                       refined, args.scipy_method)
             row[f"seconds_{processes}_processes"] = seconds_p
             row[f"trials_per_s_{processes}_processes"] = m / seconds_p
+            row[f"trials_per_cpu_s_{processes}_processes"] = m / cpu_p
         mark(f"{strategy}: peer whole trial, {label}, end")
         whole[label] = row
         print(f"  peer whole trial, {label}: {row['trials_per_s_1_process']:,.0f} trials/s "
@@ -1406,6 +1413,20 @@ def print_report(report, processes):
             pp = w.get(f"trials_per_s_{processes}_processes", float("nan"))
             print(f"{r['strategy']:<11} {pipe:<20} {j:>9,.0f} {p1:>9,.0f} {pp:>9,.0f} "
                   f"{j / p1:>15.2f} {j / pp:>15.2f}")  # fmt: skip
+    print("\nPer CPU-second (trials per second of CPU time of the measuring process(es), all "
+          "threads: less sensitive to other load; a per-core efficiency)")
+    print(f"{'strategy':<11} {'pipeline':<20} {'jaxloc':>9} {'peer x1':>9} {'peer ' + px:>9} "
+          f"{'jaxloc/peer x1':>15}")  # fmt: skip
+    for r in report["strategies"].values():
+        for pipe, study, whole in (("closed form", "robust", "closed form"),
+                                   ("+ joint refinement", "robust+refined",
+                                    "closed form + refinement")):  # fmt: skip
+            j = r["jaxloc_run_study"][study]["trials_per_cpu_s"]
+            w = r["peer_whole_trial"][whole]
+            p1 = w["trials_per_cpu_s_1_process"]
+            pp = w.get(f"trials_per_cpu_s_{processes}_processes", float("nan"))
+            print(f"{r['strategy']:<11} {pipe:<20} {j:>9,.0f} {p1:>9,.0f} {pp:>9,.0f} "
+                  f"{j / p1:>15.2f}")  # fmt: skip
     print("\nPeer estimators alone on jaxloc's observations (1 process):")
     for r in report["strategies"].values():
         pa = r["peer_estimators_on_shared_observations"]
