@@ -83,8 +83,10 @@ MAX_SCALE_CANDIDATES = 4
 #: the overhead pixels overturn a 7-sigma odometry misfit).
 ODOMETRY_GATE = 50.0
 #: Two refined solutions whose every position differs by less than this (m) are the same
-#: minimum (the two solvers' tolerances leave ~1e-5 m).
-SAME_MINIMUM_M = 1e-3
+#: minimum. The two solvers' tolerances leave ~2e-5 m typically and up to a few mm along
+#: weakly observed directions of the concurrent cycle (same cost to 0.1 chi-square
+#: units, checked), while distinct minima of the paper's geometry are 1-4 m apart.
+SAME_MINIMUM_M = 1e-2
 
 #: Load-average snapshots around every timed section: `(label, seconds since start, 1-min
 #: load, 5-min load)`. The machine is shared: a row measured under load says so.
@@ -1325,6 +1327,7 @@ def run_strategy(strategy, args, pool, processes):
                                    "p99": float(np.percentile(gap, 99)) if gap.size else None,
                                    "max": float(gap.max()) if gap.size else None},  # fmt: skip
             "fraction_same_minimum": float(np.mean(gap < SAME_MINIMUM_M)) if gap.size else None,
+            "fraction_within_1mm": float(np.mean(gap < 1e-3)) if gap.size else None,
             "trials_different_minimum": int(np.sum(gap >= SAME_MINIMUM_M)),
             # Of those, where the first estimator's C is farther from the truth.
             "different_and_first_worse_on_C": int(np.sum(
@@ -1338,6 +1341,19 @@ def run_strategy(strategy, args, pool, processes):
         "peer refined vs jaxloc refined": agreement("peer refined", "jaxloc refined"),
         "peer closed form vs jaxloc robust": agreement("peer closed form", "jaxloc robust"),
     }
+    # The peer's chi-square (whitened cost) where the refinements agree and where they
+    # differ: a wrong minimum shows in its cost (the peer runs no fit test; jaxloc flags a
+    # chi-square above its 99.9% quantile as `inconsistent_fit`).
+    both = errors["peer refined"]["ok"] & errors["jaxloc refined"]["ok"]
+    diff = errors["peer refined"]["vector"] - errors["jaxloc refined"]["vector"]
+    gap = np.max(np.linalg.norm(diff, axis=-1), axis=-1)
+    chi2 = ref["cost"]
+    same = gap < SAME_MINIMUM_M
+    for label, sel in (("same", both & same), ("different", both & ~same)):
+        agree["peer refined vs jaxloc refined"][f"peer_chi2_on_{label}_minimum"] = (
+            {"median": float(np.median(chi2[sel])), "max": float(np.max(chi2[sel]))}
+            if sel.any() else None
+        )
     # The ground robots' closed forms are the same method (chain / mutual localization):
     # their positions should agree to rounding for the sequential strategy.
     both = errors["peer closed form"]["ok"] & errors["jaxloc robust"]["ok"]
@@ -1346,8 +1362,8 @@ def run_strategy(strategy, args, pool, processes):
     agree["ground robots, closed forms: max position gap m"] = float(g.max()) if g.size else None
     a = agree["peer refined vs jaxloc refined"]
     print(f"  refined agreement: {a['fraction_same_minimum']:.4f} of {a['trials']} trials "
-          f"within {SAME_MINIMUM_M * 1e3:g} mm; median max gap "
-          f"{a['max_position_gap_m']['median']:.2e} m", flush=True)  # fmt: skip
+          f"within {SAME_MINIMUM_M * 1e3:g} mm ({a['fraction_within_1mm']:.4f} within 1 mm); "
+          f"median max gap {a['max_position_gap_m']['median']:.2e} m", flush=True)  # fmt: skip
 
     # Peer whole trial: its own simulation + estimators, one process and one per core.
     print("== peer whole trial", flush=True)
