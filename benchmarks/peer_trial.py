@@ -1089,33 +1089,32 @@ def jaxloc_side(strategy, seed, n_trials, check_seed=12345):
         "feasible": np.asarray(feasible, bool),
     }  # fmt: skip
 
-    # Studies: a warm-up chunk compiles (and is timed as "first chunk"), then the timed run.
-    # The ("robust", "refined") study runs the shared trials: its errors are jaxloc's.
+    # Studies: a warm-up chunk of each compiles it (timed as "first chunk"); `study` then
+    # runs the shared trials, timed (the caller repeats it; the numbers are the same).
     chunk = jaxloc.balanced_chunk_size(n_trials)
-    studies = {}
+    first_chunk_s = {}
     for methods in (("robust",), ("robust", "refined")):
         t0 = time.perf_counter()
         jaxloc.run_chunk(sc, seed + 1, 0, chunk, methods)
-        first = time.perf_counter() - t0
-        mark(f"{strategy}: jaxloc run_study {'+'.join(methods)} start")
+        first_chunk_s["+".join(methods)] = time.perf_counter() - t0
+
+    def study(methods):
         t0, c0 = time.perf_counter(), time.process_time()
         out = jaxloc.run_study(sc, n_trials, seed=seed, chunk_size=chunk, methods=methods,
                                progress=False)  # fmt: skip
         seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-        mark(f"{strategy}: jaxloc run_study {'+'.join(methods)} end")
-        studies["+".join(methods)] = {
-            "methods": list(methods), "trials": n_trials, "chunk_size": chunk,
-            "first_chunk_s": first, "seconds": seconds, "trials_per_s": n_trials / seconds,
-            "cpu_seconds": cpu, "trials_per_cpu_s": n_trials / cpu,
-            "errors": {k: out[k] for k in ("status", "position", "rotation", "position_vector")},
-        }  # fmt: skip
+        keys = ("status", "position", "rotation", "position_vector")
+        return seconds, cpu, {k: out[k] for k in keys}
+
     return {
+        "study": study,
+        "chunk_size": chunk,
+        "first_chunk_s": first_chunk_s,
         "params": params,
         "tables": tables,
         "camera_checks": checks,
         "shared": shared,
         "simulate_compile_and_run_s": sim_seconds,
-        "studies": studies,
         "devices": jax.device_count(),
         "status_names": jaxloc.status_names(),
     }
@@ -1220,6 +1219,80 @@ def check_model(world, model, shared, est):
     }
 
 
+def best_of(runs, n):
+    """Rates of repeated runs `[(seconds, cpu_seconds), ...]` of `n` trials: the best (the
+    machine is shared: other load only slows a run down) and all of them."""
+    return {
+        "trials_per_s": n / min(r[0] for r in runs),
+        "trials_per_cpu_s": n / min(r[1] for r in runs),
+        "all_trials_per_s": [n / r[0] for r in runs],
+        "all_trials_per_cpu_s": [n / r[1] for r in runs],
+    }
+
+
+def timing_rounds(strategy, args, js, pool, processes):
+    """Speed of both pipelines, jaxloc's study and the peer's whole trial (its own simulation
+    + estimators + scoring; in one process and in `processes`), in `args.repeats` rounds
+    that interleave them, so both sample the same load; the best run of each is kept.
+    Returns `(studies, whole, jaxloc_errors)`: jaxloc's errors on the shared trials come
+    from its first ("robust", "refined") study (every repeat computes the same numbers)."""
+    params, n, seed = js["params"], args.trials, args.seed
+    n_whole = {False: n, True: args.whole_refined_trials or max(256, n // 4)}
+    runs = {(m, p): [] for m in ("closed form", "closed form + refinement")
+            for p in ("jaxloc", "peer x1", "peer xP")}  # fmt: skip
+    jaxloc_errors, own = None, {}
+    for r in range(args.repeats):
+        print(f"== {strategy}: timing round {r + 1} of {args.repeats}", flush=True)
+        for refined, methods in ((False, ("robust",)), (True, ("robust", "refined"))):
+            label = "closed form + refinement" if refined else "closed form"
+            m = n_whole[refined]
+            mark(f"{strategy}: round {r + 1}, {label}: jaxloc start")
+            seconds, cpu, errors = js["study"](methods)
+            runs[label, "jaxloc"].append((seconds, cpu))
+            if refined and jaxloc_errors is None:
+                jaxloc_errors = errors
+            mark(f"{strategy}: round {r + 1}, {label}: peer x1 start")
+            seconds, cpu, e = whole_trial(params, m, seed + 7, refined, args.scipy_method)
+            runs[label, "peer x1"].append((seconds, cpu))
+            own[label] = e
+            if pool is not None:
+                mark(f"{strategy}: round {r + 1}, {label}: peer x{processes} start")
+                seconds, cpu, _ = whole_trial_parallel(pool, processes, params, m, seed + 11,
+                                                       refined, args.scipy_method)  # fmt: skip
+                runs[label, "peer xP"].append((seconds, cpu))
+            mark(f"{strategy}: round {r + 1}, {label}: end")
+            rates = [f"jaxloc {n / runs[label, 'jaxloc'][-1][0]:,.0f}/s"]
+            rates += [f"{p} {m / runs[label, p][-1][0]:,.0f}/s" for p in ("peer x1", "peer xP")
+                      if runs[label, p]]  # fmt: skip
+            print(f"  {label}: " + ", ".join(rates), flush=True)
+    studies, whole = {}, {}
+    for refined, methods in ((False, ("robust",)), (True, ("robust", "refined"))):
+        label = "closed form + refinement" if refined else "closed form"
+        m = n_whole[refined]
+        studies["+".join(methods)] = {
+            "methods": list(methods), "trials": n, "chunk_size": js["chunk_size"],
+            "first_chunk_s": js["first_chunk_s"]["+".join(methods)],
+            **best_of(runs[label, "jaxloc"], n),
+        }  # fmt: skip
+        row = {"trials": m}
+        for p, key in (("peer x1", "1_process"), ("peer xP", f"{processes}_processes")):
+            if runs[label, p]:
+                b = best_of(runs[label, p], m)
+                row.update({f"trials_per_s_{key}": b["trials_per_s"],
+                            f"trials_per_cpu_s_{key}": b["trials_per_cpu_s"],
+                            f"all_trials_per_s_{key}": b["all_trials_per_s"],
+                            f"all_trials_per_cpu_s_{key}": b["all_trials_per_cpu_s"]})  # fmt: skip
+        e = own[label]
+        ok = e["ok"] & e["feasible"]
+        row["feasible_fraction"] = float(e["feasible"].mean())
+        row["ok_fraction"] = float(ok.mean())
+        row["own_accuracy"] = {cam: {"position_m": stats(e["position"][ok, ci]),
+                                     "rotation_rad": stats(e["rotation"][ok, ci])}
+                               for ci, cam in enumerate(CAMERAS)}  # fmt: skip
+        whole[label] = row
+    return studies, whole, jaxloc_errors
+
+
 def run_strategy(strategy, args, pool, processes):
     seed = args.seed
     n = args.trials
@@ -1231,9 +1304,7 @@ def run_strategy(strategy, args, pool, processes):
         assert np.array_equal(world.tables[k], js["tables"][k]), f"strategy table {k} differs"
     camera_checks = check_cameras(world, js["camera_checks"])
     model = CycleModel(world)
-    for name, s in js["studies"].items():
-        print(f"  jaxloc run_study {name}: {s['trials_per_s']:,.0f} trials/s "
-              f"(first chunk {s['first_chunk_s']:.1f} s)", flush=True)  # fmt: skip
+    print(f"  jaxloc first chunks (compile + run): {js['first_chunk_s']}", flush=True)
 
     # Peer estimators alone on jaxloc's observations.
     print("== peer estimators on the shared observations", flush=True)
@@ -1288,8 +1359,9 @@ def run_strategy(strategy, args, pool, processes):
           f"{n / (t_closed + t_refine):,.0f} trials/s (scipy {args.scipy_method}, analytic "
           f"jac); FD jac {n_sub / t_fd:,.1f} cycles/s", flush=True)  # fmt: skip
 
+    studies, whole, jx = timing_rounds(strategy, args, js, pool, processes)
+
     # Accuracy on the shared trials.
-    jx = js["studies"]["robust+refined"]["errors"]
     errors = {}
     for name, e in (("peer closed form", est), ("peer refined", ref)):
         pos, rot, vec = score(world, e, shared["truth"])
@@ -1365,35 +1437,6 @@ def run_strategy(strategy, args, pool, processes):
           f"within {SAME_MINIMUM_M * 1e3:g} mm ({a['fraction_within_1mm']:.4f} within 1 mm); "
           f"median max gap {a['max_position_gap_m']['median']:.2e} m", flush=True)  # fmt: skip
 
-    # Peer whole trial: its own simulation + estimators, one process and one per core.
-    print("== peer whole trial", flush=True)
-    whole = {}
-    n_whole = {False: n, True: args.whole_refined_trials or n}
-    for refined in (False, True):
-        label = "closed form + refinement" if refined else "closed form"
-        m = n_whole[refined]
-        mark(f"{strategy}: peer whole trial, {label}, start")
-        seconds, cpu, e = whole_trial(params, m, seed + 7, refined, args.scipy_method)
-        row = {"trials": m, "seconds_1_process": seconds, "trials_per_s_1_process": m / seconds,
-               "trials_per_cpu_s_1_process": m / cpu}  # fmt: skip
-        ok = e["ok"] & e["feasible"]
-        row["feasible_fraction"] = float(e["feasible"].mean())
-        row["ok_fraction"] = float(ok.mean())
-        row["own_accuracy"] = {cam: {"position_m": stats(e["position"][ok, ci]),
-                                     "rotation_rad": stats(e["rotation"][ok, ci])}
-                               for ci, cam in enumerate(CAMERAS)}  # fmt: skip
-        if pool is not None:
-            seconds_p, cpu_p, _ = whole_trial_parallel(pool, processes, params, m, seed + 11,
-                                                       refined, args.scipy_method)
-            row[f"seconds_{processes}_processes"] = seconds_p
-            row[f"trials_per_s_{processes}_processes"] = m / seconds_p
-            row[f"trials_per_cpu_s_{processes}_processes"] = m / cpu_p
-        mark(f"{strategy}: peer whole trial, {label}, end")
-        whole[label] = row
-        print(f"  peer whole trial, {label}: {row['trials_per_s_1_process']:,.0f} trials/s "
-              f"(1 process)" + (f", {row[f'trials_per_s_{processes}_processes']:,.0f} "
-                                f"({processes} processes)" if pool is not None else ""),
-              flush=True)  # fmt: skip
     return {
         "strategy": strategy,
         "trials": n,
@@ -1401,8 +1444,7 @@ def run_strategy(strategy, args, pool, processes):
         "jaxloc_devices": js["devices"],
         "feasible_fraction_shared": float(feas.mean()),
         "checks": {"cameras": camera_checks, "model": model_check},
-        "jaxloc_run_study": {k: {kk: vv for kk, vv in v.items() if kk != "errors"}
-                             for k, v in js["studies"].items()},  # fmt: skip
+        "jaxloc_run_study": studies,
         "jaxloc_simulate_compile_and_run_s": js["simulate_compile_and_run_s"],
         "peer_estimators_on_shared_observations": peer_alone,
         "peer_whole_trial": whole,
@@ -1500,7 +1542,10 @@ def main(argv=None):
     ap.add_argument("--fd-trials", type=int, default=None,
                     help="cycles refined with finite differences (default 128; 32 with --quick)")
     ap.add_argument("--whole-refined-trials", type=int, default=None,
-                    help="trials of the peer's whole trial with refinement (default: --trials)")
+                    help="trials of the peer's whole trial with refinement, per timing run "
+                    "(default: --trials / 4, at least 256)")
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="timing rounds (interleaving jaxloc and the peer); best run kept")
     ap.add_argument("--processes", type=int, default=os.cpu_count() or 1,
                     help="worker processes of the parallel peer (default: the cores; 1: none)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "peer_trial.json"))
