@@ -222,7 +222,8 @@ def _start(estimate: CycleEstimate, strategy: str):
     """The estimate's placements as a start (finite: else the identity) and whether the
     refinement may run: the estimate is a usable start, successful or only flagged by the
     fit gate (a refinement may find the consistent minimum the closed form missed), or
-    `ambiguous` with its rival minima as the other starts (the multi-start decides)."""
+    `ambiguous` by the gates with its rival minima as the other starts (the multi-start
+    decides)."""
     T0_place, T0_over = estimate_placements(estimate.poses, strategy)
     finite = jnp.all(jnp.isfinite(T0_place)) & jnp.all(jnp.isfinite(T0_over))
     ident = jnp.zeros(7, T0_place.dtype).at[0].set(1.0)
@@ -230,7 +231,10 @@ def _start(estimate: CycleEstimate, strategy: str):
     T0_over = jnp.where(finite, T0_over, ident)
     usable = (estimate.result == RESULTS.successful) | (estimate.result == RESULTS.inconsistent_fit)
     if estimate.alternatives is not None:
-        usable = usable | (estimate.result == RESULTS.ambiguous)
+        # Ambiguous by the gates (a rival minimum fits almost as well), not by the solver
+        # (several exact P3P roots, which no refinement can tell apart).
+        rival = estimate.checks.solver_result == RESULTS.successful
+        usable = usable | ((estimate.result == RESULTS.ambiguous) & rival)
     return T0_place, T0_over, finite & usable
 
 
