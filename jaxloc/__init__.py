@@ -18,10 +18,13 @@ from ._core.xla_workaround import avoid_ynn_crash as _avoid_ynn_crash
 _avoid_ynn_crash()
 
 from ._cameras.files import (
+    Camchain as Camchain,
+    camchain_from_kalibr as camchain_from_kalibr,
     camera_from_dict as camera_from_dict,
     camera_from_kalibr as camera_from_kalibr,
     camera_to_dict as camera_to_dict,
     camera_to_kalibr as camera_to_kalibr,
+    load_camchain as load_camchain,
     load_camera as load_camera,
     save_camchain as save_camchain,
     save_camera as save_camera,

@@ -19,6 +19,7 @@ from jaxloc._cameras.files import (
     camera_from_spec,
     camera_to_dict,
     camera_to_kalibr,
+    load_camchain,
     load_camera,
     save_camchain,
     save_camera,
@@ -474,6 +475,7 @@ def test_other_kalibr_models_are_refused_by_name(tmp_path, model, distortion, co
         (lambda c: c["cam0"].update(intrinsics=[500.0, 501.0, 320.0]), "list of 4 numbers"),
         (lambda c: c["cam0"].update(intrinsics=[500.0, 501.0, -1.0, 240.0]), "principal point"),
         (lambda c: c["cam0"].update(rostopic=5), "`rostopic` must be a string"),
+        (lambda c: c["cam0"].update(intrinsics=[500, 501.0, 320.0, 240.0]), "must be floats"),
         (lambda c: c["cam0"].update(resolution=[640.5, 480]), "positive integer"),
         (lambda c: c["cam1"].update(T_cn_cnm1=[[1, 0], [0, 1]]), "4x4"),
         (lambda c: c["cam1"].update(T_cn_cnm1=(2 * np.eye(4)).tolist()), "rigid transform"),
@@ -492,6 +494,160 @@ def test_camchains_are_read_with_kalibrs_rules(tmp_path, change, match):
         for name in sorted(chain):  # a camera's own entry is checked when it is read
             load_camera(path, name=name)
     assert f"`{path}`" in str(info.value)
+
+
+def test_camchains_round_trip_with_baselines_and_topics(tmp_path):
+    # Issue 20.5: `T_cn_cnm1` was checked on read but never returned.
+    import jaxlie
+
+    cams = [KALIBR_CAMERAS[("pinhole", "radtan")], KALIBR_CAMERAS[("omni", "radtan")],
+            KALIBR_CAMERAS[("omni", "equidistant")]]  # fmt: skip
+    T10 = jaxlie.SE3.exp(jnp.array([0.1, -0.02, 0.03, 0.2, -0.1, 0.3]))
+    T21 = _rigid(-0.7, [0.0, 0.12, -0.01])
+    topics = ["/front/image_raw", None, "/left/image_mono"]
+    path = tmp_path / "camchain.yaml"
+    save_camchain(cams, path, [T10, T21], topics)
+    chain = load_camchain(path)
+    assert isinstance(chain, jaxloc.Camchain) and chain.names == ("cam0", "cam1", "cam2")
+    assert chain.rostopics == ("/front/image_raw", "/cam1/image_raw", "/left/image_mono")
+    for back, cam in zip(chain.cameras, cams):
+        assert bool(eqx.tree_equal(back, cam, typematch=True))
+    np.testing.assert_allclose(chain.T_cn_cnm1[0].as_matrix(), T10.as_matrix(), atol=1e-15)
+    np.testing.assert_allclose(chain.T_cn_cnm1[1].as_matrix(), T21, atol=1e-15)
+    # T_cam_cam0 composes the chain: p_c2 = T21 T10 p_c0.
+    np.testing.assert_allclose(chain.T_cam_cam0("cam2").as_matrix(),
+                               T21 @ np.asarray(T10.as_matrix()), atol=1e-14)  # fmt: skip
+    np.testing.assert_array_equal(chain.T_cam_cam0(0).as_matrix(), np.eye(4))
+    assert chain.camera("cam1") is chain.cameras[1] and chain.camera(2) is chain.cameras[2]
+    # Written again from the Camchain: the same file, one camera at a time the same cameras.
+    save_camchain(chain, tmp_path / "again.yaml")
+    again = yaml.safe_load((tmp_path / "again.yaml").read_text())
+    assert again == yaml.safe_load(path.read_text())
+    assert bool(eqx.tree_equal(load_camera(path, name="cam2"), cams[2]))
+    with pytest.raises(ValueError, match="has no camera 'cam3'"):
+        chain.camera("cam3")
+    with pytest.raises(ValueError, match="brings its own"):
+        save_camchain(chain, tmp_path / "x.yaml", rostopics=["/a", "/b", "/c"])
+    with pytest.raises(FileFormatError, match="is not a Kalibr camchain"):
+        save_camera(PINHOLE, tmp_path / "c.json")
+        load_camchain(tmp_path / "c.json")
+
+
+# A camchain as Kalibr's documentation lays it out (wiki "yaml formats"): rotations printed
+# to 5-8 decimals (not orthonormal to 1e-6), IMU extrinsics, time shift, overlaps.
+KALIBR_LAYOUT = """\
+cam0:
+  cam_overlaps: [1]
+  camera_model: pinhole
+  distortion_coeffs: [-0.2769, 0.0671, 0.00087, 0.00011]
+  distortion_model: radtan
+  intrinsics: [461.629, 460.152, 362.680, 246.049]
+  resolution: [752, 480]
+  rostopic: /cam0/image_raw
+  T_cam_imu:
+  - [0.0148655429818, -0.999880929698, 0.00414029679422, -0.0216401454975]
+  - [0.999557249008, 0.0149672133247, 0.025715529948, -0.064676986768]
+  - [-0.0257744366974, 0.00375618835797, 0.999660727178, 0.00981073058949]
+  - [0.0, 0.0, 0.0, 1.0]
+  timeshift_cam_imu: -8.121e-05
+cam1:
+  camera_model: omni
+  intrinsics: [0.80065, 833.006, 830.345, 373.850, 253.749]
+  distortion_model: radtan
+  distortion_coeffs: [-0.3351, 0.1321, 0.00055, 0.00057]
+  T_cn_cnm1:
+  - [0.99998, 0.00216, 0.00427, -0.11003]
+  - [-0.00221, 0.99993, 0.01188, 0.00046]
+  - [-0.00424, -0.01189, 0.99992, -0.00008]
+  - [0.0, 0.0, 0.0, 1.0]
+  cam_overlaps: [0]
+  resolution: [752, 480]
+  rostopic: /cam1/image_raw
+cam2:
+  camera_model: pinhole
+  intrinsics: [458.654, 457.296, 367.215, 248.375]
+  distortion_model: equidistant
+  distortion_coeffs: [-0.0135, 0.0527, -0.0498, 0.0136]
+  T_cn_cnm1:
+  - [1.0, 0.0, 0.0, -0.05]
+  - [0.0, 1.0, 0.0, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  - [0.0, 0.0, 0.0, 1.0]
+  resolution: [752, 480]
+  rostopic: /cam2/image_raw
+"""
+
+
+def _kalibr_pinhole_radtan(p, fu, fv, pu, pv, k1, k2, r1, r2):
+    # aslam_cameras: DistortedPinholeProjection with RadialTangentialDistortion::distort.
+    x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    mx2, my2, mxy = x * x, y * y, x * y
+    rho2 = mx2 + my2
+    rad = k1 * rho2 + k2 * rho2 * rho2
+    xd = x + x * rad + 2.0 * r1 * mxy + r2 * (rho2 + 2.0 * mx2)
+    yd = y + y * rad + 2.0 * r2 * mxy + r1 * (rho2 + 2.0 * my2)
+    return np.stack([fu * xd + pu, fv * yd + pv], -1)
+
+
+def _kalibr_pinhole_equidistant(p, fu, fv, pu, pv, k1, k2, k3, k4):
+    # aslam_cameras: EquidistantDistortion::distort on the normalized point.
+    x, y = p[:, 0] / p[:, 2], p[:, 1] / p[:, 2]
+    r = np.hypot(x, y)
+    th = np.arctan(r)
+    thd = th * (1 + k1 * th**2 + k2 * th**4 + k3 * th**6 + k4 * th**8)
+    return np.stack([fu * x * thd / r + pu, fv * y * thd / r + pv], -1)
+
+
+def _kalibr_omni_radtan(p, xi, fu, fv, pu, pv, *k):
+    # aslam_cameras: OmniProjection, the unit-sphere point seen from (0, 0, -xi).
+    d = np.linalg.norm(p, axis=-1)
+    q = np.stack([p[:, 0], p[:, 1], p[:, 2] + xi * d], -1)
+    return _kalibr_pinhole_radtan(q, fu, fv, pu, pv, *k)
+
+
+def test_a_camchain_in_kalibrs_layout_is_read_as_kalibr_projects(tmp_path):
+    path = tmp_path / "camchain-imucam.yaml"
+    path.write_text(KALIBR_LAYOUT)
+    chain = load_camchain(path)
+    d = yaml.safe_load(KALIBR_LAYOUT)
+    rng = np.random.default_rng(7)
+    p = rng.uniform([-0.4, -0.3, 1.0], [0.4, 0.3, 3.0], size=(200, 3))
+    refs = (_kalibr_pinhole_radtan, _kalibr_omni_radtan, _kalibr_pinhole_equidistant)
+    for name, cam, ref in zip(chain.names, chain.cameras, refs):
+        e = d[name]
+        assert cam.image_size == tuple(e["resolution"])
+        uv = np.asarray(cam.project(jnp.asarray(p)))
+        np.testing.assert_allclose(uv, ref(p, *e["intrinsics"], *e["distortion_coeffs"]),
+                                   atol=1e-9, rtol=0)  # fmt: skip
+    assert chain.rostopics == ("/cam0/image_raw", "/cam1/image_raw", "/cam2/image_raw")
+    # The rounded rotation is taken as Kalibr takes it: the rotation of its quaternion.
+    T = np.asarray(chain.T_cn_cnm1[0].as_matrix())
+    np.testing.assert_allclose(T, d["cam1"]["T_cn_cnm1"], atol=2e-5)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-14)
+    np.testing.assert_allclose(chain.T_cam_cam0("cam2").translation(),
+                               T[:3, 3] + [-0.05, 0.0, 0.0], atol=1e-15)  # fmt: skip
+
+
+def test_camchain_errors_name_the_camera_and_the_field(tmp_path):
+    path = tmp_path / "camchain.yaml"
+    d = yaml.safe_load(KALIBR_LAYOUT)
+    d["cam1"]["intrinsics"] = [0.8, 833, 830.345, 373.85, 253.749]
+    path.write_text(_yaml(d))
+    with pytest.raises(FileFormatError, match=r"camera `cam1`: `intrinsics` focal lengths and "
+                       r"principal point must be floats.*\(write 500.0, not 500\); got \[833, "):
+        load_camchain(path)  # fmt: skip
+    d = yaml.safe_load(KALIBR_LAYOUT)
+    d["cam2"]["T_cn_cnm1"][0][1] = 0.01  # a typo, not a rounded rotation
+    path.write_text(_yaml(d))
+    with pytest.raises(FileFormatError, match=r"camera `cam2`: `T_cn_cnm1` must be a rigid"):
+        load_camchain(path)
+    d = yaml.safe_load(KALIBR_LAYOUT)
+    del d["cam2"]["T_cn_cnm1"]  # Kalibr reads intrinsics without it; jaxloc too
+    path.write_text(_yaml(d))
+    chain = load_camchain(path)
+    assert chain.T_cn_cnm1[1] is None
+    with pytest.raises(ValueError, match="no `T_cn_cnm1` for `cam2`"):
+        chain.T_cam_cam0("cam2")
 
 
 # --------------------------------------------------------------------------------------

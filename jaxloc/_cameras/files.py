@@ -76,10 +76,14 @@ any other key is an error naming it and the file.
 - `kalibr`: a Kalibr camchain (`cam0`, `cam1`, ...; `camera_model: pinhole | omni`,
   `distortion_model: radtan | equidistant | none`), import and export. Read with the
   rules of Kalibr's own reader (`kalibr_common/ConfigReader.py`): cameras named `cam0`
-  ... `cam<n-1>`, intrinsics and coefficient counts per model, resolution two integers,
-  `rostopic` a string, `T_cn_cnm1` a 4x4 rigid transform. Written with a `rostopic` for
-  every camera and `T_cn_cnm1` for every camera after the first
-  ([`jaxloc.save_camchain`][]). Kalibr's other models (`fov`, `eucm`, `ds`) are refused,
+  ... `cam<n-1>`, intrinsics and coefficient counts per model, focal lengths and
+  principal point floats (`500.0`, not `500`) and not negative, resolution two integers,
+  `rostopic` a string, `T_cn_cnm1` a 4x4 rigid transform (its rotation within 1e-3 of
+  orthonormal: Kalibr takes any 4x4's quaternion, and published camchains round it).
+  Written with a `rostopic` for every camera and `T_cn_cnm1` for every camera after the
+  first ([`jaxloc.save_camchain`][]); [`jaxloc.load_camchain`][] reads every camera
+  with its `T_cn_cnm1` (a `jaxlie.SE3`) and topic, [`jaxloc.load_camera`][] one camera
+  by name. Kalibr's other models (`fov`, `eucm`, `ds`) are refused,
   naming the model, the camera and the file; so is writing a camera Kalibr cannot hold
   (see [`camera_to_kalibr`][]).
 
@@ -98,6 +102,8 @@ from collections.abc import Sequence
 from typing import Any
 
 import cv2
+import equinox as eqx
+import jaxlie
 import numpy as np
 
 from .._core.files import (
@@ -684,14 +690,22 @@ def camera_to_kalibr(
 
 
 def camchain_to_kalibr(
-    cameras: Sequence[AbstractCamera],
+    cameras: "Sequence[AbstractCamera] | Camchain",
     T_cn_cnm1: Sequence[Any] = (),
-    rostopics: Sequence[str] | None = None,
+    rostopics: Sequence[str | None] | None = None,
 ) -> dict[str, Any]:
     """A Kalibr camchain of `cameras` (named `cam0`, `cam1`, ...): every camera with a
-    `rostopic`, every camera after the first with `T_cn_cnm1` (4x4, from camera `n-1`'s
-    frame into camera `n`'s), as Kalibr's `ConfigReader` requires. See
+    `rostopic` (default `/cam<n>/image_raw`), every camera after the first with
+    `T_cn_cnm1` (a 4x4 matrix or a `jaxlie.SE3`: the pose of camera `n-1` in camera `n`,
+    `p_cn = T_cn_cnm1 @ p_cnm1`, metres), as Kalibr's `ConfigReader` requires. `cameras`
+    may be a [`jaxloc.Camchain`][], which brings its own transforms and topics. See
     [`camera_to_kalibr`][]."""
+    if isinstance(cameras, Camchain):
+        if T_cn_cnm1 or rostopics is not None:
+            raise ValueError(
+                "A Camchain brings its own `T_cn_cnm1` and `rostopics`; do not pass them too."
+            )
+        cameras, T_cn_cnm1, rostopics = cameras.cameras, cameras.T_cn_cnm1, cameras.rostopics
     if not cameras:
         raise ValueError("`cameras` must hold at least one camera.")
     if len(T_cn_cnm1) != len(cameras) - 1:
@@ -709,17 +723,39 @@ def camchain_to_kalibr(
     return chain
 
 
+#: How far from orthonormal (`max |R R^T - I|`) the rotation of a camchain transform may be:
+#: Kalibr's reader takes any 4x4 (`sm.Transformation` turns its 3x3 block into a
+#: quaternion), and camchains copied from Kalibr's printouts or papers carry rotations
+#: rounded to 5 decimals (~1e-5 off); a matrix further off is a typo, not a rotation.
+RIGID_TOLERANCE = 1e-3
+
+
 def _rigid4(where: str, x: Any) -> np.ndarray:
+    """A 4x4 rigid transform `[[R, t], [0, 0, 0, 1]]` as a float64 array (a `jaxlie.SE3`
+    is taken as its matrix), `R` within `RIGID_TOLERANCE` (1e-3) of a rotation, or a
+    `ValueError` naming `where`."""
+    if isinstance(x, jaxlie.SE3):
+        x = np.asarray(x.as_matrix(), np.float64)
     rows = x.tolist() if isinstance(x, np.ndarray) else x
     if not isinstance(rows, list | tuple) or len(rows) != 4:
         raise ValueError(f"{where} must be a 4x4 matrix; got {short(x)}.")
     T = np.array([_numbers(f"{where}[{i}]", r, (4,)) for i, r in enumerate(rows)])
     R = T[:3, :3]
-    rigid = np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
-    if not rigid or T[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+    rigid = np.allclose(R @ R.T, np.eye(3), rtol=0, atol=RIGID_TOLERANCE)
+    if not rigid or np.linalg.det(R) <= 0 or T[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
         raise ValueError(f"{where} must be a rigid transform [[R, t], [0, 0, 0, 1]] with R a "
                          f"rotation; got {short(T.tolist())}.")  # fmt: skip
     return T
+
+
+def _se3(T: np.ndarray) -> jaxlie.SE3:
+    """The `jaxlie.SE3` of a checked 4x4 `T` (see `_rigid4`): the rotation's quaternion,
+    normalized, as Kalibr's `sm.Transformation` takes it (exact for an exact rotation, to
+    rounding; a rounded rotation becomes the rotation of its quaternion)."""
+    q = np.asarray(jaxlie.SO3.from_matrix(T[:3, :3]).wxyz, np.float64)
+    return jaxlie.SE3.from_rotation_and_translation(
+        jaxlie.SO3(q / np.linalg.norm(q)), T[:3, 3]
+    )
 
 
 def is_camchain(d: Any) -> bool:
@@ -755,12 +791,21 @@ def camera_from_kalibr(
     Raises `ValueError` naming `where` (used verbatim in messages), the camera and the bad
     field; Kalibr models jaxloc does not have (`fov`, `eucm`, `ds`) are refused by
     name."""
-    if not isinstance(d, dict) or not d:
-        raise ValueError(f"{where} must be a Kalibr camchain mapping (cam0: ...); got {short(d)}.")
-    _check_chain_names(d, where)
+    _check_camchain(d, where)
     name = "cam0" if name is None else name
     if name not in d:
         raise ValueError(f"{where} has no camera `{short_key(name, 40)}`; it has {sorted(d)}.")
+    return _kalibr_camera(d, name, where)
+
+
+def _check_camchain(d: Any, where: str) -> None:
+    if not isinstance(d, dict) or not d:
+        raise ValueError(f"{where} must be a Kalibr camchain mapping (cam0: ...); got {short(d)}.")
+    _check_chain_names(d, where)
+
+
+def _kalibr_camera(d: dict, name: str, where: str) -> AbstractCamera:
+    """Camera `name` of the checked camchain `d` (see [`camera_from_kalibr`][])."""
     at = f"{where}, camera `{name}`"
     e = check_keys(d[name], KALIBR_KEYS, where=at)
     for key in ("camera_model", "distortion_model", "intrinsics", "distortion_coeffs",
@@ -783,6 +828,99 @@ def camera_from_kalibr(
         raise ValueError(f"{at} is invalid: {err}") from None
 
 
+class Camchain(eqx.Module):
+    r"""A Kalibr camera chain: cameras `cam0, cam1, ...` and the rigid transforms between
+    consecutive ones, as [`jaxloc.load_camchain`][] reads them and
+    [`jaxloc.save_camchain`][] writes them.
+
+    **Frames.** Each camera's frame is its model's (optical frame x right, y down, z
+    forward for a pinhole; z along the mirror axis for an omni camera: Kalibr's and
+    jaxloc's projection formulas are the same, so are the frames). Kalibr's `T_cn_cnm1`
+    of camera n is, in jaxloc's naming, the pose of camera n-1 in camera n:
+    `p_cn = T_cn_cnm1 @ p_cnm1`, translation in metres.
+
+    **Attributes:**
+
+    - `cameras`: the cameras, in chain order (a tuple of [`jaxloc.AbstractCamera`][]).
+    - `T_cn_cnm1`: one `jaxlie.SE3` per camera after the first (length
+      `len(cameras) - 1`), or `None` where the file gives no `T_cn_cnm1`.
+    - `rostopics`: each camera's image topic (`None` where the file has none). Static.
+    """
+
+    cameras: tuple[AbstractCamera, ...]
+    T_cn_cnm1: tuple[jaxlie.SE3 | None, ...]
+    rostopics: tuple[str | None, ...] = eqx.field(static=True)
+
+    def __check_init__(self):
+        n = len(self.cameras)
+        if n < 1:
+            raise ValueError("`Camchain(cameras=...)` must hold at least one camera.")
+        if len(self.T_cn_cnm1) != n - 1:
+            raise ValueError(
+                f"`Camchain(T_cn_cnm1=...)` must hold one transform per camera after the "
+                f"first ({n - 1}); got {len(self.T_cn_cnm1)}."
+            )
+        if len(self.rostopics) != n:
+            raise ValueError(
+                f"`Camchain(rostopics=...)` must hold one topic (or None) per camera ({n}); "
+                f"got {len(self.rostopics)}."
+            )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The cameras' names in the chain, `("cam0", "cam1", ...)`."""
+        return tuple(f"cam{n}" for n in range(len(self.cameras)))
+
+    def index(self, name: str | int) -> int:
+        """The position of camera `name` (`"cam1"`, or its index `1`) in the chain; a
+        `ValueError` naming the chain's cameras if there is none."""
+        if isinstance(name, int) and not isinstance(name, bool) and 0 <= name < len(self.cameras):
+            return name
+        if isinstance(name, str) and name in self.names:
+            return self.names.index(name)
+        raise ValueError(f"The camchain has no camera {short(name, 40)}; it has "
+                         f"{list(self.names)}.")  # fmt: skip
+
+    def camera(self, name: str | int) -> AbstractCamera:
+        """Camera `name` (`"cam1"` or `1`)."""
+        return self.cameras[self.index(name)]
+
+    def T_cam_cam0(self, name: str | int) -> jaxlie.SE3:
+        """The pose of `cam0` in camera `name`'s frame, `T_cn_cnm1 @ ... @ T_c1_c0`
+        (`p_cn = T_cam_cam0 @ p_c0`; identity for `cam0`). A `ValueError` naming the
+        camera whose `T_cn_cnm1` is missing."""
+        n = self.index(name)
+        T = jaxlie.SE3.identity()
+        for k in range(1, n + 1):
+            link = self.T_cn_cnm1[k - 1]
+            if link is None:
+                raise ValueError(
+                    f"The camchain gives no `T_cn_cnm1` for `cam{k}`, so `cam{n}`'s pose "
+                    "relative to `cam0` is unknown."
+                )
+            T = link @ T
+        return T
+
+
+def camchain_from_kalibr(d: Any, where: str = "`camchain`") -> Camchain:
+    """Every camera of a Kalibr camchain mapping, with its `T_cn_cnm1` and `rostopic`, read
+    with the rules of Kalibr's `ConfigReader` (see [`camera_from_kalibr`][]). A
+    `T_cn_cnm1` within `RIGID_TOLERANCE` (1e-3) of a rigid transform becomes the `jaxlie.SE3`
+    of its rotation's normalized quaternion, as Kalibr's `sm.Transformation` takes it.
+    Raises `ValueError` naming `where`, the camera and the bad field."""
+    _check_camchain(d, where)
+    cameras, links, topics = [], [], []
+    for name in [f"cam{n}" for n in range(len(d))]:
+        cameras.append(_kalibr_camera(d, name, where))
+        e = d[name]
+        topics.append(e.get("rostopic"))
+        if name != "cam0":
+            T = e.get("T_cn_cnm1")
+            links.append(None if T is None else
+                         _se3(_rigid4(f"{where}, camera `{name}`: `T_cn_cnm1`", T)))  # fmt: skip
+    return Camchain(tuple(cameras), tuple(links), tuple(topics))
+
+
 def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, str, list[float], list[float]]:
     """Camera model, distortion model, intrinsics and coefficients (`[]` for `none`) of a
     camchain entry, checked as Kalibr's `checkIntrinsics` and `checkDistortion` do."""
@@ -790,6 +928,11 @@ def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, str, list[float], list[fl
     layout = KALIBR_INTRINSICS[model]
     intr = _numbers(f"{at}: `intrinsics` {layout}", e["intrinsics"], (layout.count(",") + 1,))
     xi, (fu, fv, pu, pv) = (intr[0], intr[1:]) if model == "omni" else (0.0, intr)
+    raw = e["intrinsics"][-4:]
+    if not all(isinstance(v, float | np.floating) for v in raw):
+        raise ValueError(f"{at}: `intrinsics` focal lengths and principal point must be "
+                         "floats, as Kalibr's reader requires (write 500.0, not 500); got "
+                         f"{short(raw)}.")  # fmt: skip
     if xi < 0:
         raise ValueError(f"{at}: `intrinsics` xi must be >= 0; got {xi!r}.")
     if fu <= 0 or fv <= 0:
@@ -950,13 +1093,27 @@ def save_camera(
 
 
 def save_camchain(
-    cameras: Sequence[AbstractCamera],
+    cameras: "Sequence[AbstractCamera] | Camchain",
     path: str | os.PathLike,
     T_cn_cnm1: Sequence[Any] = (),
-    rostopics: Sequence[str] | None = None,
+    rostopics: Sequence[str | None] | None = None,
 ) -> None:
-    """Write a Kalibr camchain YAML of `cameras` (`cam0`, `cam1`, ...), atomically; see
-    `jaxloc._cameras.files.camchain_to_kalibr` for `T_cn_cnm1` and `rostopics`."""
+    """Write a Kalibr camchain YAML of `cameras` (`cam0`, `cam1`, ...), atomically.
+
+    **Arguments:**
+
+    - `cameras`: the cameras in chain order, or a [`jaxloc.Camchain`][] (then without
+      `T_cn_cnm1` and `rostopics`, which it holds).
+    - `path`: destination.
+    - `T_cn_cnm1`: one rigid transform per camera after the first, a 4x4 matrix or a
+      `jaxlie.SE3`: the pose of camera `n-1` in camera `n` (`p_cn = T_cn_cnm1 @ p_cnm1`,
+      metres), Kalibr's `T_cn_cnm1`.
+    - `rostopics`: each camera's image topic; default (or `None` for one camera)
+      `/cam<n>/image_raw`. Kalibr requires a topic for every camera.
+
+    Kalibr's `ConfigReader` reads the file; [`jaxloc.load_camchain`][] reads it back (see
+    [`camera_to_kalibr`][] for the cameras Kalibr cannot hold).
+    """
     atomic_write(path, dumps_yaml(camchain_to_kalibr(cameras, T_cn_cnm1, rostopics)))
 
 
@@ -990,3 +1147,20 @@ def load_camera(path: str | os.PathLike, name: str | None = None) -> AbstractCam
                 "applies only to camchains."
             )
         return camera_from_dict(d, where=where)
+
+
+def load_camchain(path: str | os.PathLike) -> Camchain:
+    """Read every camera of a Kalibr camchain file with its `T_cn_cnm1` and `rostopic`,
+    by the rules of Kalibr's `ConfigReader` (see [`jaxloc.camchain_from_kalibr`][]).
+
+    Raises `jaxloc._core.files.FileFormatError` (a `ValueError`) naming the file, the
+    camera and the bad field, also for a file that is not a camchain."""
+    path = os.fspath(path)
+    d = read_camera_mapping(path)
+    where = f"camera file `{path}`"
+    with naming_file(path, "camera file"):
+        if not is_camchain(d):
+            raise FileFormatError(
+                f"{where} is not a Kalibr camchain (cam0: {{camera_model: ..., ...}}, ...)."
+            )
+        return camchain_from_kalibr(d, where=where)
