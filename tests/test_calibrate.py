@@ -8,6 +8,7 @@ import math
 import os
 
 import cv2
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import jaxlie
@@ -18,6 +19,7 @@ import yaml
 from jaxloc._cameras.files import camera_from_kalibr, load_camera, save_camera
 from jaxloc._cli.images import register
 from jaxloc._vision.calibrate import (
+    calibrate_omni_corners,
     calibrate_pinhole,
     find_corners,
     object_points,
@@ -132,6 +134,40 @@ def test_omni_closed_form_initialization():
         est = jaxlie.SE3(jnp.asarray(Tv))
         assert np.linalg.norm(np.asarray(est.translation() - T.translation())) < 0.003
         assert float(jaxloc.rotation_error(est.rotation(), T.rotation())) < np.radians(0.5)
+
+
+@pytest.mark.slow  # ~20 s, mostly compiling the LM solve
+def test_omni_options_hold_what_they_fix_and_recover_the_rest():
+    # cv2.omnidir's flags (issue 20.5): the principal point and focal lengths held at
+    # given values (CALIB_USE_GUESS + FIX_CENTER + FIX_GAMMA), the tangential coefficients
+    # held (FIX_P1, FIX_P2), xi and k1, k2 recovered from synthetic corners (0.05 px noise).
+    truth = jaxloc.OmniCamera(0.9, 190.0, 188.0, 322.0, 236.0, dist=(-0.02, 0.005, 0.0, 0.0))
+    obj = object_points(BOARD, SQUARE)
+    rng = np.random.default_rng(3)
+    corners = []
+    for _ in range(8):
+        az, el, d = rng.uniform(0, 2 * math.pi), rng.uniform(-0.05, 0.35), rng.uniform(0.35, 0.5)
+        T = _board_pose(az, el, d, rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5))
+        uv = np.asarray(truth.project(jax.vmap(lambda q: T @ q)(jnp.asarray(obj))))
+        corners.append(uv + rng.normal(0.0, 0.05, uv.shape))
+    cal = calibrate_omni_corners(
+        corners, obj, (640, 480), principal_point=(322.0, 236.0), fix_center=True,
+        focal_init=(190.0, 188.0), fix_focal=True, dist_init=(0.0, 0.0, 0.0, 0.0),
+        fix_coefficients=("p1", "p2"),
+    )  # fmt: skip
+    cam = cal.camera
+    assert (float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy)) == (190.0, 188.0,
+                                                                            322.0, 236.0)
+    assert np.asarray(cam.dist)[2:].tolist() == [0.0, 0.0]
+    assert all(cal.std[n] == 0.0 for n in ("fx", "fy", "cx", "cy", "p1", "p2"))
+    for name, true in (("xi", 0.9), ("k1", -0.02), ("k2", 0.005)):
+        got = float(getattr(cam, name) if name == "xi" else cam.dist[("k1", "k2").index(name)])
+        assert abs(got - true) < 4 * cal.std[name] + 1e-6, (name, got, true, cal.std[name])
+    assert cal.rms < 0.07
+    with pytest.raises(ValueError, match=r"`fix_coefficients` must name some of"):
+        calibrate_omni_corners(corners, obj, (640, 480), fix_coefficients=("k3",))
+    with pytest.raises(ValueError, match=r"`focal_init` must be 2 finite numbers"):
+        calibrate_omni_corners(corners, obj, (640, 480), focal_init=(190.0,))
 
 
 @pytest.mark.slow  # ~15 s on an idle machine, mostly compiling the LM solve

@@ -193,6 +193,32 @@ def test_cli_calibrate_omni_options(tmp_path, monkeypatch, capsys):
     # Defaults: calibrate_omni's own (xi from 1, nothing fixed but the skew).
     assert seen == dict(window=5, fix_xi=False, fix_distortion=False, fix_skew=True,
                         principal_point=None, images=[str(img)])  # fmt: skip
+    # cv2.omnidir's other flags (issue 20.5): FIX_GAMMA, FIX_CENTER, FIX_K1..P2, USE_GUESS.
+    seen.clear()
+    args = parser.parse_args(argv[:9] + [
+        "--focal-init", "190", "188", "--fix-focal", "--fix-center", "--dist-init", "-0.02",
+        "0.005", "0", "0", "--fix-coefficients", "p1,p2", str(img)])  # fmt: skip
+    assert args.func(args) == 0
+    assert seen == dict(window=5, fix_xi=False, fix_distortion=False, fix_skew=True,
+                        principal_point=None, focal_init=(190.0, 188.0), fix_focal=True,
+                        fix_center=True, dist_init=(-0.02, 0.005, 0.0, 0.0),
+                        fix_coefficients=("p1", "p2"), images=[str(img)])  # fmt: skip
+    for bad in ("p3", "p1,p1", "k1 k2"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(argv[:9] + ["--fix-coefficients", bad, str(img)])
+    assert "expected distinct names among k1,k2,p1,p2" in capsys.readouterr().err
+    # Refused before any work: an option of another model, a skew Kalibr cannot hold.
+    pin = ["calibrate", "--model", "pinhole"] + argv[3:9] + [str(img)]
+    for extra, match in ((["--fix-center"], "`--fix-center` applies to --model omni"),
+                         (["--fix-coefficients", "p1"], "`--fix-coefficients` applies to")):
+        args = parser.parse_args(pin[:-1] + extra + [str(img)])
+        with pytest.raises(ValueError, match=match):
+            args.func(args)
+    seen.clear()
+    args = parser.parse_args(argv[:9] + ["--estimate-skew", "--format", "kalibr", str(img)])
+    with pytest.raises(ValueError, match="Kalibr's omni model has no skew"):
+        args.func(args)
+    assert not seen
     for action in parser._subparsers._group_actions[0].choices["calibrate"]._actions:
         if action.option_strings and action.dest != "help":
             assert action.help, f"{action.option_strings} has no help text"

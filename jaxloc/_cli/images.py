@@ -35,6 +35,11 @@ _MODEL_OPTIONS = {
     "fix_xi": ("omni",),
     "xi_init": ("omni",),
     "fix_distortion": ("omni",),
+    "fix_coefficients": ("omni",),
+    "fix_focal": ("omni",),
+    "fix_center": ("omni",),
+    "focal_init": ("omni",),
+    "dist_init": ("omni",),
     "estimate_skew": ("omni",),
     "principal_point": ("omni",),
     "max_steps": ("omni",),
@@ -67,6 +72,21 @@ def _expand_images(patterns: list[str], what: str) -> list[str]:
     return images
 
 
+_OMNI_COEFFICIENTS = ("k1", "k2", "p1", "p2")
+
+
+def _coefficient_names(text: str) -> tuple[str, ...]:
+    """`--fix-coefficients`: a comma-separated list of omni distortion coefficients."""
+    names = tuple(n.strip() for n in text.split(","))
+    bad = [n for n in names if n not in _OMNI_COEFFICIENTS]
+    if bad or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct names among {','.join(_OMNI_COEFFICIENTS)}, comma-separated "
+            f"(e.g. p1,p2); got {text!r}"
+        )
+    return names
+
+
 def _check_model_options(args) -> None:
     for name, models in _MODEL_OPTIONS.items():
         value = getattr(args, name)
@@ -96,6 +116,11 @@ def _cmd_calibrate(args) -> int:
             "format cannot hold (a Kalibr camera has one set of intrinsics); use --format "
             "opencv, json or yaml."
         )
+    if args.estimate_skew and args.format == "kalibr":
+        raise ValueError(
+            "`--estimate-skew` cannot be saved with `--format kalibr` (Kalibr's omni model "
+            "has no skew); use the OpenCV, JSON or YAML format."
+        )
     if args.rational and args.format == "kalibr":
         raise ValueError(
             "`--rational` cannot be saved with `--format kalibr` (Kalibr's radtan has 4 "
@@ -118,10 +143,14 @@ def _cmd_calibrate(args) -> int:
             fix_skew=not args.estimate_skew,
             principal_point=tuple(args.principal_point) if args.principal_point else None,
         )  # fmt: skip
-        if args.xi_init is not None:
-            omni_options["xi_init"] = args.xi_init
-        if args.max_steps is not None:
-            omni_options["max_steps"] = args.max_steps
+        # Given only when set, so that calibrate_omni's own defaults apply otherwise.
+        for name in ("xi_init", "max_steps", "focal_init", "dist_init", "fix_coefficients"):
+            value = getattr(args, name)
+            if value is not None:
+                omni_options[name] = tuple(value) if isinstance(value, list) else value
+        for name in ("fix_focal", "fix_center"):
+            if getattr(args, name):
+                omni_options[name] = True
         cal = calibrate_omni(images, board, args.square, **omni_options)
     extra = {"rms_px": cal.rms, "num_images": len(cal.used)}
     save_camera(cal.camera, args.out, args.format,
@@ -263,11 +292,29 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
                    help="starting mirror parameter xi (default 1, a paraboloid)")  # fmt: skip
     g.add_argument("--fix-xi", action="store_true",
                    help="hold xi at its starting value (--xi-init)")  # fmt: skip
+    g.add_argument("--focal-init", type=float, nargs=2, default=None, metavar=("FX", "FY"),
+                   help="starting generalized focal lengths in px (default: estimated from "
+                   "the board's straight lines)")  # fmt: skip
+    g.add_argument("--fix-focal", action="store_true",
+                   help="hold fx, fy at their starting values (--focal-init; cv2.omnidir's "
+                   "CALIB_FIX_GAMMA)")  # fmt: skip
+    g.add_argument("--fix-center", action="store_true",
+                   help="hold the principal point at --principal-point, or at the image "
+                   "centre (cv2.omnidir's CALIB_FIX_CENTER)")  # fmt: skip
+    g.add_argument("--dist-init", type=float, nargs=4, default=None,
+                   metavar=("K1", "K2", "P1", "P2"),
+                   help="starting distortion coefficients (default: 0)")  # fmt: skip
     g.add_argument("--fix-distortion", action="store_true",
-                   help="no distortion: hold k1 k2 p1 p2 at 0")  # fmt: skip
+                   help="hold k1 k2 p1 p2 at their starting values (--dist-init, default 0: "
+                   "no distortion)")  # fmt: skip
+    g.add_argument("--fix-coefficients", type=_coefficient_names, default=None,
+                   metavar="NAMES",
+                   help="hold some distortion coefficients at their starting values, "
+                   "comma-separated among k1,k2,p1,p2 (e.g. p1,p2: no tangential "
+                   "distortion; cv2.omnidir's CALIB_FIX_K1 ... CALIB_FIX_P2)")  # fmt: skip
     g.add_argument("--estimate-skew", action="store_true",
                    help="estimate the skew K[0, 1] (default: held at 0, as in Kalibr's "
-                   "omni model)")  # fmt: skip
+                   "omni model; cv2.omnidir's CALIB_FIX_SKEW)")  # fmt: skip
     g.add_argument("--principal-point", type=float, nargs=2, default=None, metavar=("CX", "CY"),
                    help="starting principal point in px (default: the image centre)")  # fmt: skip
     g.add_argument("--max-steps", type=int, default=None, metavar="N",

@@ -540,8 +540,13 @@ def calibrate_omni_corners(
     *,
     principal_point: tuple[float, float] | None = None,
     xi_init: float = 1.0,
+    focal_init: tuple[float, float] | None = None,
+    dist_init: tuple[float, float, float, float] | None = None,
     fix_xi: bool = False,
+    fix_focal: bool = False,
+    fix_center: bool = False,
     fix_distortion: bool = False,
+    fix_coefficients: tuple[str, ...] = (),
     fix_skew: bool = True,
     max_steps: int = 200,
     names: list[str] | None = None,
@@ -560,12 +565,19 @@ def calibrate_omni_corners(
     - `corners`: per view, `(n, 2)` pixels of the board's corners (NaN rows ignored).
     - `obj`: board-frame corner positions `(n, 3)` (m), e.g. [`jaxloc.object_points`][].
     - `image_size`: `(width, height)`.
-    - `principal_point`: initial `(cx, cy)`; default the image centre. Keyword only,
-      as are the following.
+    - `principal_point`: initial `(cx, cy)` in px; default the image centre. Keyword
+      only, as are the following.
     - `xi_init`: initial mirror parameter used after the `xi = 1` focal estimate.
-    - `fix_xi`, `fix_distortion`: hold those parameters at their initial values.
+    - `focal_init`: initial `(fx, fy)` in px; default the closed-form estimate.
+    - `dist_init`: initial `(k1, k2, p1, p2)`; default zeros.
+    - The options of OpenCV's `cv2.omnidir.calibrate` flags, each holding parameters at
+      their initial values (the `*_init` and `principal_point` arguments play
+      `CALIB_USE_GUESS`): `fix_xi` (`CALIB_FIX_XI`), `fix_focal` (`fx`, `fy`;
+      `CALIB_FIX_GAMMA`), `fix_center` (`cx`, `cy`; `CALIB_FIX_CENTER`),
+      `fix_distortion` (all of `k1, k2, p1, p2`), `fix_coefficients` (some of them by
+      name, e.g. `("p1", "p2")`; `CALIB_FIX_K1` ... `CALIB_FIX_P2`).
     - `fix_skew`: hold the skew at 0 (default, as Kalibr's `omni` model, which has no
-      skew); `False` estimates it (OpenCV `omnidir`'s `K[0, 1]`).
+      skew; `CALIB_FIX_SKEW`); `False` estimates it (OpenCV `omnidir`'s `K[0, 1]`).
     - `max_steps`: LM iteration limit.
     - `names`: label of each view.
 
@@ -583,26 +595,41 @@ def calibrate_omni_corners(
             raise ValueError(
                 f"`corners[{k}]` must have {obj.shape[0]} rows like `obj`; got {c.shape[0]}."
             )
+    unknown = [c for c in fix_coefficients if c not in _OMNI_NAMES[5:]]
+    if isinstance(fix_coefficients, str) or unknown:
+        raise ValueError(
+            f"`fix_coefficients` must name some of {_OMNI_NAMES[5:]}; got {fix_coefficients!r}."
+        )
+    for arg, value, n in (("focal_init", focal_init, 2), ("dist_init", dist_init, 4),
+                          ("principal_point", principal_point, 2)):  # fmt: skip
+        if value is not None and (np.shape(value) != (n,) or not np.all(np.isfinite(value))):
+            raise ValueError(f"`{arg}` must be {n} finite numbers; got {value!r}.")
+    if focal_init is not None and not min(focal_init) > 0:
+        raise ValueError(f"`focal_init` must be positive (px); got {focal_init!r}.")
     w, h = image_size
     cx0, cy0, gamma, T0 = omni_initial_guess(views, obj, (w, h), principal_point)
     # From xi = 1 to xi_init: keep the image radius of the board's mean direction, so the
     # start stays close (f scales with (z_s + xi)).
-    if xi_init != 1.0:
+    if focal_init is None and xi_init != 1.0:
         zs = []
         for Tv in T0:
             zc = np.asarray(jaxlie.SE3(jnp.asarray(Tv)).translation())
             zs.append(zc[2] / np.linalg.norm(zc))
         zbar = float(np.mean(zs))
         gamma = gamma * (zbar + xi_init) / (zbar + 1.0)
-    f0 = gamma
-    theta0 = np.array([xi_init, 1.0, 1.0, cx0 / f0, cy0 / f0, 0, 0, 0, 0], np.float64)
+    fx0, fy0 = (gamma, gamma) if focal_init is None else (float(v) for v in focal_init)
+    f0 = 0.5 * (fx0 + fy0)
+    dist0 = [0.0] * 4 if dist_init is None else [float(v) for v in dist_init]
+    theta0 = np.array([xi_init, fx0 / f0, fy0 / f0, cx0 / f0, cy0 / f0, *dist0], np.float64)
     if not fix_skew:
         theta0 = np.append(theta0, 0.0)
     free = np.ones(theta0.shape[0], bool)
-    if fix_xi:
-        free[0] = False
-    if fix_distortion:
-        free[5:9] = False
+    free[0] = not fix_xi
+    free[1:3] = not fix_focal
+    free[3:5] = not fix_center
+    free[5:9] = not fix_distortion
+    for c in fix_coefficients:
+        free[_OMNI_NAMES.index(c)] = False
     uv = np.stack([np.where(np.isfinite(c), c, 0.0) for c in views])
     weight = np.stack([np.all(np.isfinite(c), -1).astype(np.float64) for c in views])
     (theta, deltas), result, steps = _omni_solve(
