@@ -543,6 +543,46 @@ def test_zoom_table_constant_beyond_the_ends_and_differentiable():
     assert float(gt.zoom_table.fx[2]) == 0.0
 
 
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_zoom_table_is_continuous_and_a_function_of_zoom_under_vmap_jit_grad(dtype):
+    # Issue 20.4: the camera stays a pure JAX function of zoom, in both dtypes.
+    table = jax.tree.map(lambda x: x.astype(dtype), TABLE)
+    p = jnp.asarray([0.3, 0.1, 2.0], dtype)
+
+    def uv(zoom):
+        return PTZCamera(pan=0.1, zoom=zoom, zoom_table=table).project(p)
+
+    zooms = jnp.linspace(0.0, 1.0, 2001, dtype=dtype)  # the steps 0, 0.4, 1 are on the grid
+    batch = jax.jit(jax.vmap(uv))(zooms)
+    assert batch.dtype == dtype
+    loop = np.stack([np.asarray(uv(z)) for z in zooms[::100]])
+    np.testing.assert_allclose(batch[::100], loop, rtol=1e-6 if dtype == jnp.float32 else 1e-13)
+    # Continuous: no jump between neighbouring zooms beyond the slope times the spacing,
+    # across the calibrated steps too (the two segments meet at the step's values).
+    slope = np.asarray(jax.jit(jax.vmap(jax.jacfwd(uv)))(zooms))
+    assert slope.dtype == dtype and np.all(np.isfinite(slope))
+    step = np.abs(np.diff(np.asarray(batch, np.float64), axis=0))
+    # (The slope at 0 and 1 is one-sided, 0 beyond the table: take the largest of the
+    # slopes at the interval's ends and at its neighbours'.)
+    a = np.pad(np.abs(slope), ((1, 1), (0, 0)), mode="edge")
+    near = np.maximum.reduce([a[:-3], a[1:-2], a[2:-1], a[3:]])
+    bound = 5e-4 * near * 1.05 + (1e-3 if dtype == jnp.float32 else 1e-9)
+    assert np.all(step <= bound), np.max(step - bound)
+    k = int(np.argmin(np.abs(np.asarray(zooms) - 0.4)))
+    for eps in (1e-3, 1e-5):
+        below, at, above = (np.asarray(uv(jnp.asarray(0.4 + d, dtype))) for d in (-eps, 0, eps))
+        assert np.all(np.abs(below - at) < 2e3 * eps + 1e-3)
+        assert np.all(np.abs(above - at) < 2e3 * eps + 1e-3)
+    np.testing.assert_allclose(batch[k], uv(jnp.asarray(0.4, dtype)), rtol=1e-6)
+    # grad through the table in this dtype equals the float64 finite difference.
+    g = jax.jit(jax.grad(lambda z: uv(z)[0]))(jnp.asarray(0.7, dtype))
+    assert g.dtype == dtype
+    u64 = lambda z: float(PTZCamera(pan=0.1, zoom=z, zoom_table=TABLE).project(  # noqa: E731
+        jnp.asarray([0.3, 0.1, 2.0]))[0])
+    fd = (u64(0.7 + 1e-6) - u64(0.7 - 1e-6)) / 2e-6
+    np.testing.assert_allclose(float(g), fd, rtol=1e-3 if dtype == jnp.float32 else 1e-6)
+
+
 def test_zoom_table_default_model_unchanged():
     # The two-end model stays the default: no table, focal length linear in zoom.
     cam = PTZCamera(zoom=0.25)
