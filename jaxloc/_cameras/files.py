@@ -85,7 +85,7 @@ any other key is an error naming it and the file.
   with its `T_cn_cnm1` (a `jaxlie.SE3`) and topic, [`jaxloc.load_camera`][] one camera
   by name. Kalibr's other models (`fov`, `eucm`, `ds`) are refused,
   naming the model, the camera and the file; so is writing a camera Kalibr cannot hold
-  (see [`camera_to_kalibr`][]).
+  (see [`jaxloc.camera_to_kalibr`][]).
 
 A scenario file's `cameras:` entries are read by [`camera_from_spec`][]: a camera dict, a
 preset name (`paper_overhead`, `paper_ptz`, `paper_omni`), a preset with overrides
@@ -699,7 +699,7 @@ def camchain_to_kalibr(
     `T_cn_cnm1` (a 4x4 matrix or a `jaxlie.SE3`: the pose of camera `n-1` in camera `n`,
     `p_cn = T_cn_cnm1 @ p_cnm1`, metres), as Kalibr's `ConfigReader` requires. `cameras`
     may be a [`jaxloc.Camchain`][], which brings its own transforms and topics. See
-    [`camera_to_kalibr`][]."""
+    [`jaxloc.camera_to_kalibr`][]."""
     if isinstance(cameras, Camchain):
         if T_cn_cnm1 or rostopics is not None:
             raise ValueError(
@@ -805,7 +805,7 @@ def _check_camchain(d: Any, where: str) -> None:
 
 
 def _kalibr_camera(d: dict, name: str, where: str) -> AbstractCamera:
-    """Camera `name` of the checked camchain `d` (see [`camera_from_kalibr`][])."""
+    """Camera `name` of the checked camchain `d` (see [`jaxloc.camera_from_kalibr`][])."""
     at = f"{where}, camera `{name}`"
     e = check_keys(d[name], KALIBR_KEYS, where=at)
     for key in ("camera_model", "distortion_model", "intrinsics", "distortion_coeffs",
@@ -904,7 +904,7 @@ class Camchain(eqx.Module):
 
 def camchain_from_kalibr(d: Any, where: str = "`camchain`") -> Camchain:
     """Every camera of a Kalibr camchain mapping, with its `T_cn_cnm1` and `rostopic`, read
-    with the rules of Kalibr's `ConfigReader` (see [`camera_from_kalibr`][]). A
+    with the rules of Kalibr's `ConfigReader` (see [`jaxloc.camera_from_kalibr`][]). A
     `T_cn_cnm1` within `RIGID_TOLERANCE` (1e-3) of a rigid transform becomes the `jaxlie.SE3`
     of its rotation's normalized quaternion, as Kalibr's `sm.Transformation` takes it.
     Raises `ValueError` naming `where`, the camera and the bad field."""
@@ -1071,7 +1071,7 @@ def save_camera(
     - `format`: `"opencv"` (`cv::FileStorage` YAML, as `cv2.calibrateCamera` users
       write it), `"json"` or `"yaml"`: the camera dict, exact for every model (a PTZ
       whole, with its zoom table); or `"kalibr"` (a camchain with one camera, `cam0`;
-      see [`camera_to_kalibr`][] for what Kalibr cannot hold). Default: `json` for a
+      see [`jaxloc.camera_to_kalibr`][] for what Kalibr cannot hold). Default: `json` for a
       `.json` suffix, else `opencv`.
     - `extra`: informational keys to store beside the camera (`INFO_KEYS`, e.g.
       `rms_px`; not in the Kalibr format).
@@ -1112,7 +1112,7 @@ def save_camchain(
       `/cam<n>/image_raw`. Kalibr requires a topic for every camera.
 
     Kalibr's `ConfigReader` reads the file; [`jaxloc.load_camchain`][] reads it back (see
-    [`camera_to_kalibr`][] for the cameras Kalibr cannot hold).
+    [`jaxloc.camera_to_kalibr`][] for the cameras Kalibr cannot hold).
     """
     atomic_write(path, dumps_yaml(camchain_to_kalibr(cameras, T_cn_cnm1, rostopics)))
 
