@@ -136,7 +136,6 @@ def test_omni_closed_form_initialization():
         assert float(jaxloc.rotation_error(est.rotation(), T.rotation())) < np.radians(0.5)
 
 
-@pytest.mark.slow  # ~20 s, mostly compiling the LM solve
 def test_omni_options_hold_what_they_fix_and_recover_the_rest():
     # cv2.omnidir's flags (issue 20.5): the principal point and focal lengths held at
     # given values (CALIB_USE_GUESS + FIX_CENTER + FIX_GAMMA), the tangential coefficients
@@ -163,7 +162,9 @@ def test_omni_options_hold_what_they_fix_and_recover_the_rest():
     for name, true in (("xi", 0.9), ("k1", -0.02), ("k2", 0.005)):
         got = float(getattr(cam, name) if name == "xi" else cam.dist[("k1", "k2").index(name)])
         assert abs(got - true) < 4 * cal.std[name] + 1e-6, (name, got, true, cal.std[name])
-    assert cal.rms < 0.07
+    # Measured: xi 0.8991, k1 -0.0204, k2 0.00501 (std 0.0012, 0.00065, 0.00011); RMS
+    # 0.068 px (the noise is 0.05 px per coordinate, 0.071 px per corner).
+    assert cal.rms < 0.08
     with pytest.raises(ValueError, match=r"`fix_coefficients` must name some of"):
         calibrate_omni_corners(corners, obj, (640, 480), fix_coefficients=("k3",))
     with pytest.raises(ValueError, match=r"`focal_init` must be 2 finite numbers"):
