@@ -26,7 +26,7 @@ def _cpu() -> float:
 
 
 def _fusions(compiled) -> int:
-    return len(re.findall(r"\bfusion(?:\.\d+)?\s*=", compiled.as_text()))
+    return len(re.findall(r" fusion\(", compiled.as_text()))
 
 
 def measure(name, fn, args, batches=(), batched_args=None):
@@ -185,11 +185,12 @@ def study_programs():
         row = {"name": f"study chunk[{strategy}]", "trace_s": t1 - t0, "compile_cpu_s": c1 - c0,
                "fusions": _fusions(compiled.compiled), "chunk": chunk,
                "devices": jax.device_count()}  # fmt: skip
+        print(_format(row), flush=True)
         times = []
         for c in range(2):
             s = time.perf_counter()
-            jax.block_until_ready(compiled(*engine._chunk_inputs(scenario, 0, c * chunk, chunk,
-                                                                  jaxloc.METHODS)[:3]))  # fmt: skip
+            inputs = engine._chunk_inputs(scenario, 0, c * chunk, chunk, jaxloc.METHODS)
+            jax.block_until_ready(compiled(*inputs))
             times.append(time.perf_counter() - s)
         row["per_trial_us"] = 1e6 * min(times) / chunk
         row["trials_per_s"] = chunk / min(times)

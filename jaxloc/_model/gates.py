@@ -25,14 +25,16 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   moves, a near-collinear formation).
 """
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._core.linalg import gram, spd_inverse
 from .._core.results import RESULTS
-from .._cycle.estimate import CycleCovariance, FitCheck
+from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck
 from .._cycle.rig import Rig
-from .covariance import covariance_of_tangent, with_offset
+from .covariance import covariance_of_tangent, estimate_placements, with_offset
 from .measurements import CycleData, residuals_and_jacobian
 
 
@@ -115,3 +117,46 @@ def check(
     )
     checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable)
     return result, checks, covariance
+
+
+class GatePoint(eqx.Module):
+    """Where and on what an estimate is gated: its placements `(placements, 7)` and
+    overhead camera `(7,)` (`wxyz_xyz`), the whitened measurements, and the solver's own
+    status. Stacked along a leading axis, several estimates are gated by one `vmap`
+    ([`gate_all`][]): one traced copy of the gates, a smaller program."""
+
+    T_place: Float[Array, "placements 7"]
+    T_over: Float[Array, "7"]
+    data: CycleData
+    solver_result: RESULTS
+
+
+def gate_point(estimate: CycleEstimate, data: CycleData, strategy: str) -> GatePoint:
+    """The [`GatePoint`][] of an (ungated) estimate: its placements where each first
+    occurs (identity where not finite: a failed solver's poses), its `result` as the
+    solver's status."""
+    T_place, T_over = estimate_placements(estimate.poses, strategy)
+    finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
+    ident = jnp.zeros(7, T_place.dtype).at[0].set(1.0)
+    return GatePoint(
+        jnp.where(finite, T_place, ident), jnp.where(finite, T_over, ident), data,
+        estimate.result,
+    )  # fmt: skip
+
+
+def gate_all(points: list[GatePoint], rig: Rig, strategy: str):
+    """[`check`][] of every point, as one `vmap`: a list of `(result, checks,
+    covariance)`, one per point."""
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
+    out = jax.vmap(
+        lambda p: check(p.T_place, p.T_over, p.data, rig, strategy, p.solver_result)
+    )(stacked)
+    return [jax.tree.map(lambda x, i=i: x[i], out) for i in range(len(points))]
+
+
+def gated(estimate: CycleEstimate, gate) -> CycleEstimate:
+    """`estimate` with the result, checks and covariance of its gates."""
+    result, checks, covariance = gate
+    return eqx.tree_at(
+        lambda e: (e.result, e.checks, e.covariance), estimate, (result, checks, covariance)
+    )
