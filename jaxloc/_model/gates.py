@@ -30,12 +30,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from .._core.linalg import gram, spd_inverse
+from .._core.linalg import spd_inverse
 from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck
 from .._cycle.rig import Rig
 from .covariance import covariance_of_tangent, estimate_placements, with_offset
-from .measurements import CycleData, residuals_and_jacobian
+from .measurements import CycleData, normal_equations
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -94,12 +94,10 @@ def check(
     to the linearized optimum (zero at a converged refinement; a closed form's error is
     that offset plus the optimum's own error)."""
     dtype = T_place.dtype
-    r, J = residuals_and_jacobian(T_place, T_over, data, rig, strategy)
-    ml_covariance, ok_information = spd_inverse(gram(J))
-    unknowns = J.shape[1]
+    chi2, H, g = normal_equations(T_place, T_over, data, rig, strategy)
+    ml_covariance, ok_information = spd_inverse(H)
+    unknowns = g.shape[0]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
-    chi2 = jnp.sum(r * r)
-    g = jnp.sum(J * r[:, None], axis=0)
     # The step to the minimum of the model linearized here, and the misfit left there.
     step = -ml_covariance @ g
     chi2_min = jnp.maximum(chi2 + g @ step, 0.0)

@@ -39,7 +39,7 @@ from .._model.measurements import (
     cycle_data,
     CycleData,
     predict,
-    residuals_and_jacobian,
+    normal_equations,
     unpack,
     whitened,
     whitened_with_jacobian,
@@ -115,11 +115,10 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active):
     precision of 100 per m^2 / rad^2."""
     n = T0_place.shape[0]
     out = levenberg_marquardt(
-        lambda x: residuals_and_jacobian(x[0], x[1], data, rig, strategy),
+        lambda x: normal_equations(x[0], x[1], data, rig, strategy),
         lambda x, delta: unpack(delta, *x),
         lambda x: jnp.max(jnp.abs(x[0][:, 4:])),
         (T0_place, T0_over),
-        num_residuals=data.mutual_pixels.size + data.overhead_pixels.size + data.odometry.size,
         num_unknowns=6 * n,
         max_steps=max_steps,
         rtol=rtol,

@@ -19,7 +19,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._core.least_squares import levenberg_marquardt
+from .._core.least_squares import levenberg_marquardt, normal_equations
 from .._core.numerics import safe_norm, safe_normalize
 from .._core.poses import apply, rplus
 from .._cycle.layout import move_start_step, moving_robot, reference_robots
@@ -35,16 +35,15 @@ def _distance(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
     return safe_norm(a - b)
 
 
-def _gauss_newton(model, x0, *, num_residuals: int, steps: int, lam: float, retract=None):
+def _gauss_newton(model, x0, *, steps: int, lam: float, retract=None):
     """`steps` Gauss--Newton steps (no convergence test) with a fixed tiny damping `lam`
     that regularizes directions no residual touches: the least-squares kernel's undamped
     case."""
     out = levenberg_marquardt(
-        model,
+        lambda x: normal_equations(*model(x)),
         (lambda x, delta: x + delta) if retract is None else retract,
         lambda x: jnp.zeros((), x.dtype),
         x0,
-        num_residuals=num_residuals,
         num_unknowns=x0.shape[0],
         max_steps=steps,
         rtol=0.0,
@@ -155,7 +154,7 @@ def _overhead_ratios(view) -> tuple[Float[Array, "4 7"], Float[Array, "4 3"]]:
         theta = jnp.concatenate([jnp.zeros(6, dtype), jnp.log(jnp.clip(rho0, 0.05, 20.0))])
         theta = _gauss_newton(
             lambda theta: (residuals(theta, T0), jax.jacfwd(residuals)(theta, T0)),
-            theta, num_residuals=3 * unit.shape[0], steps=2, lam=1e-9,
+            theta, steps=2, lam=1e-9,
         )
         T = rplus(jaxlie.SE3(T0), theta[:6]).wxyz_xyz
         return T, jnp.concatenate([jnp.ones(1, dtype), jnp.exp(theta[6:])])
@@ -235,7 +234,7 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
         fixed = (s, jnp.sum(res**2))
         # Gauss-Newton on the odometry; a step that makes a scale non-positive is refused.
         s = _gauss_newton(
-            lambda s: _concurrent_cost_and_jac(s, P, d, w), s, num_residuals=4, steps=6,
+            lambda s: _concurrent_cost_and_jac(s, P, d, w), s, steps=6,
             lam=1e-12, retract=lambda s, step: jnp.where(jnp.all(s + step > 0), s + step, s),
         )  # fmt: skip
         res, _ = _concurrent_cost_and_jac(s, P, d, w)
