@@ -956,13 +956,13 @@ def save_camchain(
     rostopics: Sequence[str] | None = None,
 ) -> None:
     """Write a Kalibr camchain YAML of `cameras` (`cam0`, `cam1`, ...), atomically; see
-    [`camchain_to_kalibr`][] for `T_cn_cnm1` and `rostopics`."""
+    `jaxloc._cameras.files.camchain_to_kalibr` for `T_cn_cnm1` and `rostopics`."""
     atomic_write(path, dumps_yaml(camchain_to_kalibr(cameras, T_cn_cnm1, rostopics)))
 
 
 def read_camera_mapping(path: str | os.PathLike) -> dict[str, Any]:
     """The mapping in a camera file: OpenCV `FileStorage` YAML (starts with `%YAML`),
-    JSON (`.json`) or YAML. Raises [`jaxloc._core.files.FileFormatError`][] naming the
+    JSON (`.json`) or YAML. Raises `jaxloc._core.files.FileFormatError` naming the
     file."""
     path = os.fspath(path)
     where = f"camera file `{path}`"
@@ -976,7 +976,7 @@ def load_camera(path: str | os.PathLike, name: str | None = None) -> AbstractCam
     """Read a camera file: the camera dict as JSON or YAML, OpenCV `cv::FileStorage`
     YAML, or a Kalibr camchain (camera `name`, default `cam0`). See the module docstring.
 
-    Raises [`jaxloc._core.files.FileFormatError`][] (a `ValueError`; for a missing file
+    Raises `jaxloc._core.files.FileFormatError` (a `ValueError`; for a missing file
     also a `FileNotFoundError`) naming the file, and the bad key or value."""
     path = os.fspath(path)
     d = read_camera_mapping(path)

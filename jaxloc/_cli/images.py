@@ -11,7 +11,16 @@ import os
 
 import numpy as np
 
-from .common import check_outputs, EXIT_NO_RESULT, EXIT_OK, write_report
+from .common import (
+    chatter,
+    check_outputs,
+    EXIT_CODES_HELP,
+    EXIT_NO_RESULT,
+    EXIT_OK,
+    HelpFormatter,
+    quiet_option,
+    write_report,
+)
 
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
@@ -128,9 +137,10 @@ def _cmd_calibrate(args) -> int:
     if "xi" in s["camera"]:
         print(f"  xi: {s['camera']['xi']:.6f}")
     print("  std: " + ", ".join(f"{k} {v:.3g}" for k, v in cal.std.items()))
-    print(f"  reprojection RMS {cal.rms:.4f} px; wrote {args.out} ({args.format or 'auto'})")
+    print(f"  reprojection RMS {cal.rms:.4f} px")
+    chatter(args)(f"wrote {args.out} ({args.format or 'auto'})")
     if args.json:
-        write_report(args.json, s)
+        write_report(args.json, s, quiet=args.quiet)
     return EXIT_OK
 
 
@@ -171,11 +181,11 @@ def _calibrate_ptz(args, board, pinhole_options) -> int:
               f"({len(step.used)} images)")  # fmt: skip
         if step.rejected:
             print(f"    no board found in: {', '.join(step.rejected)}")
-    print(f"  wrote {args.out} ({args.format or 'auto'}): one ptz camera with the "
-          f"{len(cal.zooms)}-step zoom table")  # fmt: skip
+    chatter(args)(f"  wrote {args.out} ({args.format or 'auto'}): one ptz camera with the "
+                  f"{len(cal.zooms)}-step zoom table")  # fmt: skip
     if args.json:
-        write_report(args.json, cal.summary())
-        print(f"  zoom table and per-step reports: {args.json}")
+        write_report(args.json, cal.summary(), quiet=args.quiet)
+        chatter(args)(f"  zoom table and per-step reports: {args.json}")
     return EXIT_OK
 
 
@@ -199,16 +209,28 @@ def _cmd_localize(args) -> int:
         print(f"  {name:<3} position ({pos})  yaw/pitch/roll ({ypr}){std}")
     for note in d["notes"]:
         print(f"  note: {note}")
-    write_report(out, d)
+    write_report(out, d, quiet=args.quiet)
     return EXIT_OK if d["status"] == "successful" else EXIT_NO_RESULT
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers."""
+def register(sub: argparse._SubParsersAction, parents=None) -> None:
+    """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers (each with
+    the options of the `parents` parsers; default: `--quiet`)."""
+    parents = [quiet_option()] if parents is None else list(parents)
     p = sub.add_parser(
-        "calibrate",
+        "calibrate", parents=parents, epilog=EXIT_CODES_HELP,
+        formatter_class=HelpFormatter,
         help="calibrate a camera from chessboard images (pinhole, omni, or ptz over zooms)",
-    )
+        description=(
+            "Calibrate one camera from images of a chessboard and write it as a camera file "
+            "that jaxloc, OpenCV or Kalibr reads. pinhole: OpenCV's calibrateCamera "
+            "(Brown-Conrady distortion, optionally the rational model); omni: the unified "
+            "(Mei) omnidirectional model, fitted by jaxloc's own Levenberg-Marquardt from a "
+            "closed-form start; ptz: one pinhole calibration per zoom step (--zoom Z IMAGES, "
+            "repeated), gathered into a zoom table. Prints the parameters, their standard "
+            "deviations and the reprojection RMS."
+        ),
+    )  # fmt: skip
     p.add_argument("--model", choices=("pinhole", "omni", "ptz"), required=True,
                    help="pinhole (OpenCV), omni (unified model, jaxloc's own fit) or ptz "
                    "(one pinhole calibration per --zoom step, gathered into a zoom "
@@ -254,8 +276,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pinhole and omni: image files, quoted glob patterns or "
                    "folders")  # fmt: skip
     p.set_defaults(func=_cmd_calibrate)
-    p = sub.add_parser("localize", help="all four poses from a team's images of one cycle")
-    p.add_argument("--team", required=True, metavar="TEAM.yaml")
+    p = sub.add_parser(
+        "localize", parents=parents, epilog=EXIT_CODES_HELP,
+        formatter_class=HelpFormatter,
+        help="all four poses from a team's images of one cycle",
+        description=(
+            "Localize the four robots from a team's images of one cycle: detect the colour "
+            "markers in every image, turn them into bearings through each calibrated camera, "
+            "solve the cycle in closed form and refine it jointly; print every robot's "
+            "end-of-cycle position and yaw/pitch/roll in C1's body frame at the start, with "
+            "standard deviations, and write them as JSON. The team file names the strategy, "
+            "the camera files and the images of every step."
+        ),
+    )  # fmt: skip
+    p.add_argument("--team", required=True, metavar="TEAM.yaml",
+                   help="team file (YAML or JSON): strategy, camera files, images per step, "
+                   "odometry (see jaxloc.load_team)")  # fmt: skip
     p.add_argument("--out", metavar="FILE", help="poses JSON (default: TEAM_poses.json); "
                    "written also when the status is not successful (exit code 1)")
     p.add_argument("--no-refine", action="store_true",

@@ -28,14 +28,18 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jaxlie
+import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._core.least_squares import solve_spd
 from .._core.linalg import spd_inverse
 from .._core.results import RESULTS
-from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck
+from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_placements
+from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
-from .covariance import covariance_of_tangent, estimate_placements, with_offset
-from .measurements import CycleData, normal_equations
+from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
+from .measurements import CycleData, normal_equations, unpack, whitened
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -50,6 +54,17 @@ MAX_RELATIVE_POSITION_BOUND = 1.0
 #: Largest rotation bound (RMSE, rad) of an end-of-cycle pose for it to count as
 #: observable (~57 deg; the paper's bounds are 0.5-2 deg).
 MAX_ROTATION_BOUND = 1.0
+#: Two distinct minima whose chi-squares differ by less than this (a likelihood ratio
+#: below e^2 ~ 7) make an estimate `ambiguous`.
+AMBIGUITY_MARGIN = 4.0
+#: Two solutions whose overhead cameras are farther apart than this (m) are distinct
+#: minima.
+DISTINCT_MINIMUM = 0.1
+#: Gauss--Newton steps taken from a closed-form estimate towards the maximum-likelihood
+#: optimum, to measure the estimate's offset from it (a fixed count, so a batch of gates
+#: never waits for a straggler). From a closed form ~1 m away one linearized step
+#: misjudges the offset; four reach the optimum to well below its own uncertainty.
+POLISH_STEPS = 4
 
 
 def chi2_limit(
@@ -78,36 +93,101 @@ def observable(covariance: CycleCovariance, size) -> Array:
     pos = jnp.sqrt(jnp.trace(covariance.position, axis1=-2, axis2=-1))
     rot = jnp.sqrt(jnp.trace(covariance.rotation, axis1=-2, axis2=-1))
     ok = covariance.ok & jnp.all(jnp.isfinite(pos)) & jnp.all(jnp.isfinite(rot))
-    return ok & jnp.all(pos <= MAX_RELATIVE_POSITION_BOUND * size) & jnp.all(
-        rot <= MAX_ROTATION_BOUND
+    return (
+        ok & jnp.all(pos <= MAX_RELATIVE_POSITION_BOUND * size) & jnp.all(rot <= MAX_ROTATION_BOUND)
     )
 
 
-def check(
-    T_place, T_over, data: CycleData, rig: Rig, strategy: str, solver_result: RESULTS
-) -> tuple[RESULTS, FitCheck, CycleCovariance]:
-    """Gate an estimate whose placements are at `T_place` and whose overhead camera is at
-    `T_over`: `(result, checks, covariance)`. `result` is `solver_result` when that is a
-    failure; else `unobservable` or `inconsistent_fit` when a gate fails, else
-    `successful`. The covariance is the estimate's own, to first order: the
-    maximum-likelihood estimator's `(J^T J)^-1` at the estimate plus `d d^T`, `d` the step
-    to the linearized optimum (zero at a converged refinement; a closed form's error is
-    that offset plus the optimum's own error)."""
+def _gauss_newton_step(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """One undamped Gauss--Newton step on the whitened residuals (no step where the
+    information is singular or the step not finite)."""
+    _, H, g = normal_equations(T_place, T_over, data, rig, strategy)
+    step, _ = solve_spd(H, -g)
+    return unpack(step, T_place, T_over)
+
+
+def polish_to_optimum(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """`POLISH_STEPS` Gauss--Newton steps from `(T_place, T_over)`: the nearby
+    maximum-likelihood optimum, to well within its uncertainty."""
+    return jax.lax.fori_loop(
+        0,
+        POLISH_STEPS,
+        lambda _, x: _gauss_newton_step(*x, data, rig, strategy),
+        (T_place, T_over),
+    )
+
+
+def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
+    """`ambiguous` where a `successful` estimate has a distinct rival minimum whose
+    chi-square `runner_up_chi2` is within `AMBIGUITY_MARGIN` of its own."""
+    close = runner_up_chi2 - chi2 < AMBIGUITY_MARGIN
+    return RESULTS.where((result == RESULTS.successful) & close, RESULTS.ambiguous, result)
+
+
+def _runner_up_chi2(rivals, T_over, data: CycleData, rig: Rig, strategy: str):
+    """The lowest chi-square of the rival starts `(T_place (k, placements, 7), T_over
+    (k, 7), active (k,))` polished to their optima, among those distinct from the
+    solution whose overhead camera is at `T_over` (`inf` if none)."""
+    rival_place, rival_over, active = rivals
+
+    def one(P, O):
+        P, O = polish_to_optimum(P, O, data, rig, strategy)
+        return jnp.sum(whitened(P, O, data, rig, strategy) ** 2), O
+
+    chi2, O = jax.vmap(one)(rival_place, rival_over)
+    distinct = jnp.sum((O[:, 4:] - T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
+    return jnp.min(jnp.where(active & distinct & jnp.isfinite(chi2), chi2, jnp.inf))
+
+
+def _tangent_offset(T_place, T_over, T_place0, T_over0):
+    """The tangent `delta` (layout of `unpack`) with `unpack(delta, T_place0, T_over0)`
+    equal to `(T_place, T_over)`: each pose's `log(T0^-1 T)`."""
+
+    def log_between(a, b):
+        return (jaxlie.SE3(b).inverse() @ jaxlie.SE3(a)).log()
+
+    d = jax.vmap(log_between)(T_place[1:], T_place0[1:]).reshape(-1)
+    return jnp.concatenate([d, log_between(T_over, T_over0)])
+
+
+def end_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
+    """End-of-cycle poses (C's optical frame, C1, C2, C3) of placements `T_place`."""
+    return jnp.concatenate([T_over[None], T_place[placement_ids(strategy)[-1]]])
+
+
+def _pose_differences(T_a, T_b) -> tuple[Float[Array, "4 3"], Float[Array, "4 3"]]:
+    """`(position a - b, log(R_b^-1 R_a))` of two stacks of poses `(4, 7)`: the exact
+    counterparts of the tangent's position and rotation blocks."""
+    a, b = jaxlie.SE3(T_a), jaxlie.SE3(T_b)
+    rotation = jax.vmap(lambda ra, rb: (rb.inverse() @ ra).log())(a.rotation(), b.rotation())
+    return a.translation() - b.translation(), rotation
+
+
+def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
+              solver_result: RESULTS, polished: bool, final_poses):  # fmt: skip
+    """The gates of an estimate `(T_place, T_over)` with end-of-cycle poses `final_poses`,
+    evaluated at `(P, O)`: the estimate itself, or its polished optimum when `polished`
+    (see [`gate_all`][]). Returns `(result, checks, covariance)`."""
     dtype = T_place.dtype
-    chi2, H, g = normal_equations(T_place, T_over, data, rig, strategy)
+    chi2, H, g = normal_equations(P, O, data, rig, strategy)
     ml_covariance, ok_information = spd_inverse(H)
     unknowns = g.shape[0]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
     # The step to the minimum of the model linearized here, and the misfit left there.
     step = -ml_covariance @ g
     chi2_min = jnp.maximum(chi2 + g @ step, 0.0)
-    ml = covariance_of_tangent(ml_covariance, ok_information, T_place, T_over, strategy)
-    # The estimate's own covariance: the maximum-likelihood estimator's, plus the known
-    # offset of this estimate from the linearized optimum (zero at a converged refinement;
-    # a closed form's error is that offset plus the optimum's error).
-    covariance = with_offset(ml, -step, T_place, T_over, strategy)
+    ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy)
+    offset = -step
+    dp, dr = final_offsets(offset, P, O, strategy)
+    if polished:
+        own_dp, own_dr = _pose_differences(final_poses, end_poses(P, O, strategy))
+        offset = offset + _tangent_offset(T_place, T_over, P, O)
+        moved = jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
+        dp = dp + jnp.where(moved, own_dp, 0.0)
+        dr = dr + jnp.where(moved, own_dr, 0.0)
+    covariance = with_offset(ml, offset, dp, dr)
     limit = chi2_limit(dof, data.num_sightings, data.num_odometry, rig.noise_model, dtype)
-    is_observable = observable(ml, formation_size(T_place)) & (dof > 0)
+    is_observable = observable(ml, formation_size(P)) & (dof > 0)
     ok = solver_result == RESULTS.successful
     result = RESULTS.where(ok & ~is_observable, RESULTS.unobservable, solver_result)
     result = RESULTS.where(
@@ -118,38 +198,81 @@ def check(
 
 
 class GatePoint(eqx.Module):
-    """Where and on what an estimate is gated: its placements `(placements, 7)` and
-    overhead camera `(7,)` (`wxyz_xyz`), the whitened measurements, and the solver's own
-    status. Stacked along a leading axis, several estimates are gated by one `vmap`
-    ([`gate_all`][]): one traced copy of the gates, a smaller program."""
+    """Where and on what an estimate is gated: its placements `(placements, 7)`, overhead
+    camera `(7,)` and end-of-cycle poses `(4, 7)` of (C's optical frame, C1, C2, C3)
+    (`wxyz_xyz`, in `W`), the whitened measurements, and the solver's own status. Stacked
+    along a leading axis, several estimates are gated by one `vmap` ([`gate_all`][]): one
+    traced copy of the gates, a smaller program."""
 
     T_place: Float[Array, "placements 7"]
     T_over: Float[Array, "7"]
+    final_poses: Float[Array, "4 7"]
     data: CycleData
     solver_result: RESULTS
 
 
 def gate_point(estimate: CycleEstimate, data: CycleData, strategy: str) -> GatePoint:
     """The [`GatePoint`][] of an (ungated) estimate: its placements where each first
-    occurs (identity where not finite: a failed solver's poses), its `result` as the
-    solver's status."""
+    occurs and its end-of-cycle poses (identity where not finite: a failed solver's
+    poses), its `result` as the solver's status."""
     T_place, T_over = estimate_placements(estimate.poses, strategy)
-    finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
     ident = jnp.zeros(7, T_place.dtype).at[0].set(1.0)
-    return GatePoint(
-        jnp.where(finite, T_place, ident), jnp.where(finite, T_over, ident), data,
-        estimate.result,
-    )  # fmt: skip
+    finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
+    T_place, T_over = jnp.where(finite, T_place, ident), jnp.where(finite, T_over, ident)
+    poses = estimate.poses
+    final = jnp.concatenate(
+        [poses.T_world_overhead.wxyz_xyz[None], poses.T_world_body.wxyz_xyz[-1]]
+    )
+    final = jnp.where(jnp.all(jnp.isfinite(final)), final, ident)
+    return GatePoint(T_place, T_over, final, data, estimate.result)
 
 
-def gate_all(points: list[GatePoint], rig: Rig, strategy: str):
-    """[`check`][] of every point, as one `vmap`: a list of `(result, checks,
-    covariance)`, one per point."""
+def gate_rivals(estimate: CycleEstimate, point: GatePoint, strategy: str):
+    """The other starts an estimate carries (its `alternatives`) as its `rivals` in
+    [`gate_all`][], or `None`."""
+    if estimate.alternatives is None:
+        return None
+    return start_placements(estimate.alternatives, estimate.scales, strategy, point.T_place)
+
+
+def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, rivals=None):
+    """Gate every point, as one `vmap`: a list of `(result, checks, covariance)`, one per
+    point. `result` is the point's `solver_result` when that is a failure; else
+    `unobservable` or `inconsistent_fit` when a gate fails, else `successful`.
+
+    With `polish` (for estimates that are not converged refinements, e.g. closed forms)
+    the gates look at the point `POLISH_STEPS` Gauss--Newton steps away, the
+    maximum-likelihood optimum to well within its uncertainty. The covariance is the
+    estimate's own, to first order: the maximum-likelihood estimator's `(J^T J)^-1` there
+    plus `d d^T`, `d` the estimate's offset from that point (its own end-of-cycle poses
+    against the optimum's: a closed form solves a stationary robot's pose again at every
+    step) and from the optimum of the model linearized there (zero at a converged
+    refinement). `rivals`: per point, `None` or other starts `(T_place (k, placements,
+    7), T_over (k, 7), active (k,))` (a closed form's other local minima, see
+    [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
+    estimate `ambiguous`."""
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
-    out = jax.vmap(
-        lambda p: check(p.T_place, p.T_over, p.data, rig, strategy, p.solver_result)
-    )(stacked)
-    return [jax.tree.map(lambda x, i=i: x[i], out) for i in range(len(points))]
+
+    def one(p: GatePoint):
+        if polish:
+            P, O = polish_to_optimum(p.T_place, p.T_over, p.data, rig, strategy)
+        else:
+            P, O = p.T_place, p.T_over
+        gate = _gates_at(
+            P, O, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
+            p.final_poses,
+        )  # fmt: skip
+        return gate, O
+
+    out, O_all = jax.vmap(one)(stacked)
+    gates = []
+    for i, (point, rival) in enumerate(zip(points, rivals or [None] * len(points))):
+        result, checks, covariance = jax.tree.map(lambda x, i=i: x[i], out)
+        if rival is not None:
+            runner_up = _runner_up_chi2(rival, O_all[i], point.data, rig, strategy)
+            result = mark_ambiguous(result, checks.chi2, runner_up)
+        gates.append((result, checks, covariance))
+    return gates
 
 
 def gated(estimate: CycleEstimate, gate) -> CycleEstimate:

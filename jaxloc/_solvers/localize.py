@@ -17,7 +17,7 @@ from .._core.results import raise_if_failed, RESULTS
 from .._cycle.estimate import CycleEstimate, CycleStarts
 from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
-from .._model.gates import gate_all, gate_point, gated
+from .._model.gates import gate_all, gate_point, gate_rivals, gated
 from .._model.measurements import cycle_data
 from .concurrent import concurrent_formations, runner_up_positions
 from .overhead import solve_overhead_pose
@@ -54,6 +54,20 @@ def _observations_ok(observations: CycleObservations):
     return finite, jnp.all(d >= 0) & jnp.all(s > 0)
 
 
+def _overhead_with_mirror(points, bearings, mask, scales):
+    """The robust overhead pose and, as the one other start, the overhead solver's
+    runner-up pose (e.g. the mirror pose of nearly coplanar points) with the same
+    ground formation."""
+    pose_sol = solve_overhead_pose(
+        points, bearings, mask, method="robust", throw=False, runner_up=True
+    )
+    mirror = inverse(jaxlie.SE3(pose_sol.alternatives.wxyz_xyz[0])).wxyz_xyz
+    starts = CycleStarts(
+        scales=scales[None], T_world_overhead=mirror[None], ok=pose_sol.alternatives_ok[:1]
+    )
+    return pose_sol, starts
+
+
 def _overhead_with_starts(observations, points, bearings, mask, scales, runner_up):
     """The robust overhead pose with the concurrent strategy's other starts: one batched
     solve for the winning and the runner-up scales' points (a smaller program)."""
@@ -68,13 +82,13 @@ def _overhead_with_starts(observations, points, bearings, mask, scales, runner_u
     mirror = inverse(jaxlie.SE3(both.alternatives.wxyz_xyz[0, 0])).wxyz_xyz
     starts = CycleStarts(
         scales=jnp.stack([second, scales]),
-        T_world_overhead=jnp.stack(
-            [inverse(jaxlie.SE3(both.pose.wxyz_xyz[1])).wxyz_xyz, mirror]
+        T_world_overhead=jnp.stack([inverse(jaxlie.SE3(both.pose.wxyz_xyz[1])).wxyz_xyz, mirror]),
+        ok=jnp.stack(
+            [
+                second_ok & (both.result == RESULTS.successful)[1],
+                both.alternatives_ok[0, 0],
+            ]
         ),
-        ok=jnp.stack([
-            second_ok & (both.result == RESULTS.successful)[1],
-            both.alternatives_ok[0, 0],
-        ]),
     )
     return pose_sol, starts
 
@@ -111,6 +125,8 @@ def closed_forms(
             pose_sol, alternatives = _overhead_with_starts(
                 observations, points, bearings, mask, scales, runner_up
             )
+        elif method == "robust":
+            pose_sol, alternatives = _overhead_with_mirror(points, bearings, mask, scales)
         else:
             pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
         stats = dict(pose_sol.stats, min_angle=min_angle, odometry_rms=odo_rms)
@@ -133,8 +149,10 @@ def localize_cycle_methods(
     traced values (`throw=False`)."""
     estimates = closed_forms(observations, methods)
     data = cycle_data(observations, rig)
-    points = [gate_point(e, data, observations.strategy) for e in estimates]
-    gates = gate_all(points, rig, observations.strategy)
+    strategy = observations.strategy
+    points = [gate_point(e, data, strategy) for e in estimates]
+    rivals = [gate_rivals(e, p, strategy) for e, p in zip(estimates, points)]
+    gates = gate_all(points, rig, strategy, polish=True, rivals=rivals)
     return [gated(e, g) for e, g in zip(estimates, gates)]
 
 

@@ -14,7 +14,7 @@ from .._core.results import RESULTS, status_code
 from .._cycle.observations import CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import crlb_inputs
-from .._model.gates import gate_all, gate_point, gated, GatePoint
+from .._model.gates import end_poses, gate_all, gate_point, gate_rivals, gated, GatePoint
 from .._model.measurements import cycle_data
 from .._refine.cycle import finish_refinement, refine_solution
 from .._sim.scenario import Scenario
@@ -22,11 +22,11 @@ from .._sim.simulate import simulate_cycle
 from .._solvers.localize import closed_forms
 
 
-#: Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
-#: for the overhead camera; "robust": the same chain with jaxloc's planar-safe P3P-based
-#: overhead pose; "refined": joint maximum-likelihood refinement of the whole cycle
-#: started from "robust".
 METHODS = ("paper", "robust", "refined")
+"""Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
+for the overhead camera; "robust": the same chain with jaxloc's planar-safe P3P-based
+overhead pose; "refined": joint maximum-likelihood refinement of the whole cycle
+started from "robust"."""
 #: Levenberg–Marquardt iteration cap of the "refined" method in studies. Under `vmap` a
 #: batch runs as many steps as its slowest trial, so a long tail of rare stragglers would
 #: set the cost of every chunk; trials that hit the cap are reported as
@@ -127,7 +127,8 @@ def estimate_all(
     """Every requested estimator on the same observations (shared ground chain), gated
     together: the closed forms, the refinement started from the robust closed form, and
     (with `truth`) the Cramér–Rao bound at the true poses, in one `vmap` of the gates
-    (one traced copy of the gates and of the covariance, a smaller program).
+    (one traced copy of the gates and of the covariance per kind: polished for the
+    closed forms, at the point for the converged refinement and the true poses).
 
     **Returns:** `(estimates, bound)`: the estimates in the order of `methods`, and the
     bound's [`jaxloc.CycleCovariance`][] (`None` without `truth`)."""
@@ -143,17 +144,20 @@ def estimate_all(
             rtol=1e-6, atol=1e-6,
         )  # fmt: skip
     data = cycle_data(observations, rig)
-    names = list(estimates)
-    points = [gate_point(estimates[m], data, strategy) for m in names]
+    closed = [m for m in estimates if m != "refined"]
+    points = [gate_point(estimates[m], data, strategy) for m in closed]
+    rivals = [gate_rivals(estimates[m], p, strategy) for m, p in zip(closed, points)]
+    for name, gate in zip(closed, gate_all(points, rig, strategy, polish=True, rivals=rivals)):
+        estimates[name] = gated(estimates[name], gate)
+    # A converged refinement and the true poses are gated where they are.
+    points = [gate_point(estimates["refined"], data, strategy)] if runner_up is not None else []
     if truth is not None:
         T_place, T_over, bound_data = crlb_inputs(rig, truth, odometry_sigma_rel, strategy)
-        points.append(GatePoint(T_place, T_over, bound_data, RESULTS.successful))
-    gates = gate_all(points, rig, strategy)
-    for name, gate in zip(names, gates):
-        if name == "refined":
-            estimates[name] = finish_refinement(estimates[name], runner_up, gate)
-        else:
-            estimates[name] = gated(estimates[name], gate)
+        final = end_poses(T_place, T_over, strategy)
+        points.append(GatePoint(T_place, T_over, final, bound_data, RESULTS.successful))
+    gates = gate_all(points, rig, strategy, polish=False) if points else []
+    if runner_up is not None:
+        estimates["refined"] = finish_refinement(estimates["refined"], runner_up, gates[0])
     bound = gates[-1][2] if truth is not None else None
     return [estimates[m] for m in methods], bound
 
