@@ -49,40 +49,147 @@ def solve_spd(
     return jnp.where(ok, x, 0.0), ok
 
 
-class LMResult(NamedTuple):
-    """Outcome of [`levenberg_marquardt`][]: the last accepted iterate `x`, the number of
-    steps decided (`num_steps`, at most `max_steps`), whether it `converged`, and the
-    residuals `r` and Jacobian `J` there."""
+class NormalEquations(NamedTuple):
+    """A least-squares model linearized at an iterate: the cost `r^T r`, the Gauss--Newton
+    matrix `H = J^T J` `(n, n)` and the gradient `g = J^T r` `(n,)`. Every model of the
+    kernel returns these: a sparse model (a cycle: each residual touches two poses)
+    builds them without a dense Jacobian."""
 
+    cost: Float[Array, ""]
+    H: Float[Array, "n n"]
+    g: Float[Array, " n"]
+
+
+def normal_equations(r: Float[Array, " m"], J: Float[Array, "m n"]) -> NormalEquations:
+    """The [`NormalEquations`][] of residuals `r` and their dense Jacobian `J`."""
+    return NormalEquations(jnp.sum(r * r), gram(J), jnp.sum(J * r[:, None], axis=0))
+
+
+class LMSettings(NamedTuple):
+    """The static settings of [`levenberg_marquardt`][] (see its arguments)."""
+
+    rtol: float
+    atol: float
+    damped: bool = True
+    decrease_tol: Any = None
+    final_gauss_newton: bool = False
+
+
+class LMState(NamedTuple):
+    """The loop state of [`levenberg_marquardt`][], resumable with [`lm_continue`][]:
+    `k` iterations run (iteration `k >= 1` decided on step `k`), the current iterate `x`
+    with its normal equations, the damping `lam` the proposed step `x_try` was solved
+    with, and whether that step is finite, small enough to stop and how much it
+    promises (`predicted`, the decrease of the linearized cost)."""
+
+    k: Int[Array, ""]
     x: PyTree
-    num_steps: Int[Array, ""]
-    converged: Bool[Array, ""]
-    r: Float[Array, " m"]
-    J: Float[Array, "m n"]
-
-
-class _State(NamedTuple):
-    k: Int[Array, ""]  # iterations run; iteration k >= 1 decided on step k
-    x: PyTree  # the current iterate ...
-    r: Float[Array, " m"]  # ... with its residuals and Jacobian
-    J: Float[Array, "m n"]
-    lam: Float[Array, ""]  # the damping the proposed step was solved with
+    normal: NormalEquations
+    lam: Float[Array, ""]
     nu: Float[Array, ""]
     done: Bool[Array, ""]
     converged: Bool[Array, ""]
-    x_try: PyTree  # the proposed step ...
-    finite: Bool[Array, ""]  # ... finite, small enough to stop, and its predicted decrease
+    x_try: PyTree
+    finite: Bool[Array, ""]
     small: Bool[Array, ""]
     predicted: Float[Array, ""]
 
 
+class LMResult(NamedTuple):
+    """Outcome of [`levenberg_marquardt`][]: the last accepted iterate `x`, the number of
+    steps decided (`num_steps`), whether it `converged`, and the normal equations at
+    `x`."""
+
+    x: PyTree
+    num_steps: Int[Array, ""]
+    converged: Bool[Array, ""]
+    normal: NormalEquations
+
+
+def lm_start(
+    x0: PyTree, num_unknowns: int, *, active: Bool[Array, ""] | bool = True, lam0: float = 1e-2
+) -> LMState:
+    """The state before the first iteration: nothing evaluated yet (iteration 0
+    evaluates `x0`)."""
+    dtype = jnp.result_type(*jax.tree.leaves(x0))
+    false = jnp.array(False)
+    n = num_unknowns
+    return LMState(
+        k=jnp.array(0, jnp.int32), x=x0,
+        normal=NormalEquations(jnp.zeros((), dtype), jnp.zeros((n, n), dtype), jnp.zeros(n, dtype)),
+        lam=jnp.array(lam0, dtype), nu=jnp.array(2.0, dtype), done=~jnp.asarray(active),
+        converged=false, x_try=x0, finite=jnp.array(True), small=false,
+        predicted=jnp.array(0.0, dtype),
+    )  # fmt: skip
+
+
+def lm_continue(
+    model: Callable[[PyTree], NormalEquations],
+    retract: Callable[[PyTree, Array], PyTree],
+    scale: Callable[[PyTree], Array],
+    state: LMState,
+    settings: LMSettings,
+    max_steps: int | Array,
+) -> LMState:
+    """Iterate from `state` until converged or until `max_steps` steps are decided (the
+    step count includes those of earlier calls). See [`levenberg_marquardt`][]."""
+    rtol, atol, damped, decrease_tol, _ = settings
+    dtype = state.lam.dtype
+    eye = jnp.eye(state.normal.g.shape[0], dtype=dtype)
+
+    def propose(x, normal, lam):
+        H, g = normal.H, normal.g
+        delta, finite = solve_spd(H + lam * eye, -g)
+        small = jnp.max(jnp.abs(delta)) <= atol + rtol * scale(x)
+        if decrease_tol is not None:
+            small = small | (-jnp.sum(g * delta) <= decrease_tol)
+        predicted = -2.0 * jnp.sum(g * delta) - jnp.sum(delta * (H @ delta))
+        return retract(x, delta), finite, small, predicted
+
+    def cond(s: LMState):
+        return (s.k <= max_steps) & ~s.done
+
+    def body(s: LMState):
+        new = model(s.x_try)
+        first = s.k == 0
+        cost, cost_new = s.normal.cost, new.cost
+        ok_new = s.finite & jnp.isfinite(cost_new)
+        accept = first | (ok_new & (cost_new <= cost) if damped else ok_new)
+        # A rejected step that is already negligible: the minimum within rounding.
+        done = ~first & (accept | (s.lam < 1e-3)) & s.finite & s.small
+        pick = ft.partial(jax.tree.map, lambda a, b: jnp.where(accept, a, b))
+        if damped:
+            gain = (cost - cost_new) / jnp.where(s.predicted > 0, s.predicted, 1.0)
+            shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
+            lam = jnp.clip(jnp.where(accept, s.lam * shrink, s.lam * s.nu), _LAM_MIN, _LAM_MAX)
+            lam = jnp.where(first, s.lam, lam).astype(dtype)
+            nu = jnp.where(first | accept, 2.0, 2.0 * s.nu).astype(dtype)
+        else:
+            lam, nu = s.lam, s.nu
+        x, normal = pick(s.x_try, s.x), pick(new, s.normal)
+        x_try, finite, small, predicted = propose(x, normal, lam)
+        return LMState(s.k + 1, x, normal, lam, nu, done, done, x_try, finite, small, predicted)
+
+    return jax.lax.while_loop(cond, body, state)
+
+
+def lm_result(state: LMState, retract, settings: LMSettings) -> LMResult:
+    """The [`LMResult`][] of a final state (with the closing Gauss--Newton step of
+    `settings.final_gauss_newton`)."""
+    x = state.x
+    if settings.final_gauss_newton:
+        delta, ok = solve_spd(state.normal.H, -state.normal.g)
+        polished = retract(x, delta)
+        x = jax.tree.map(lambda a, b: jnp.where(ok & state.converged, a, b), polished, x)
+    return LMResult(x, jnp.maximum(state.k - 1, 0), state.converged, state.normal)
+
+
 def levenberg_marquardt(
-    model: Callable[[PyTree], tuple[Array, Array]],
+    model: Callable[[PyTree], NormalEquations],
     retract: Callable[[PyTree, Array], PyTree],
     scale: Callable[[PyTree], Array],
     x0: PyTree,
     *,
-    num_residuals: int,
     num_unknowns: int,
     max_steps: int | Array,
     rtol: float,
@@ -97,13 +204,14 @@ def levenberg_marquardt(
 
     **Arguments:**
 
-    - `model(x) -> (r, J)`: residuals `(num_residuals,)` at `x` and their Jacobian
-      `(num_residuals, num_unknowns)` with respect to the local perturbation `delta` of
-      `retract(x, delta)` at `delta = 0`.
+    - `model(x) -> NormalEquations`: the cost, `J^T J` and `J^T r` at `x`, `J` the
+      Jacobian of the residuals with respect to the local perturbation `delta` of
+      `retract(x, delta)` at `delta = 0` (a dense model: [`normal_equations`][]).
     - `retract(x, delta) -> x'`: applies a step (e.g. `T exp(delta)` per pose).
     - `scale(x)`: the size of `x` the relative tolerance refers to (e.g. the largest
       position, m).
     - `x0`: the start (any pytree of arrays).
+    - `num_unknowns`: the length of `delta`.
     - `max_steps`: steps decided at most (each one model evaluation).
     - `rtol`, `atol`: converged when a step (accepted, or rejected at negligible damping:
       the minimum within rounding) has `max |delta| <= atol + rtol * scale(x)`.
@@ -124,68 +232,21 @@ def levenberg_marquardt(
       weakly observed directions (a flat floor), where the step test alone takes
       hundreds of iterations. `None`: the step test only.
     - `final_gauss_newton`: after convergence, one more Gauss--Newton step from the
-      Jacobian at hand (no model evaluation) takes the remaining error to rounding.
+      normal equations at hand (no model evaluation) takes the remaining error to
+      rounding.
 
-    One model evaluation per iteration, at the top of the loop body, so the model and its
-    Jacobian are traced and compiled once: iteration 0 evaluates the start, iteration
-    `k >= 1` evaluates step `k` proposed by iteration `k - 1` and accepts or rejects it.
-    The normal equations are element-wise sums and a LAPACK-free Cholesky ([`solve_spd`][]).
-    Not meant to be differentiated: see [`implicit_step`][].
+    One model evaluation per iteration, at the top of the loop body, so the model is
+    traced and compiled once: iteration 0 evaluates the start, iteration `k >= 1`
+    evaluates step `k` proposed by iteration `k - 1` and accepts or rejects it. The loop
+    is [`lm_start`][], [`lm_continue`][] and [`lm_result`][], which a batched caller
+    may interleave (e.g. to go on with the unconverged problems of a batch only). Steps
+    are solved by a LAPACK-free Cholesky ([`solve_spd`][]). Not meant to be
+    differentiated: see [`implicit_step`][].
     """
-    leaves = jax.tree.leaves(x0)
-    dtype = jnp.result_type(*leaves)
-    eye = jnp.eye(num_unknowns, dtype=dtype)
-    lam0 = jnp.array(lam0, dtype)
-
-    def propose(x, r, J, lam):
-        H, g = gram(J), jnp.sum(J * r[:, None], axis=0)
-        delta, finite = solve_spd(H + lam * eye, -g)
-        small = jnp.max(jnp.abs(delta)) <= atol + rtol * scale(x)
-        if decrease_tol is not None:
-            small = small | (-jnp.sum(g * delta) <= decrease_tol)
-        predicted = -2.0 * jnp.sum(g * delta) - jnp.sum(delta * (H @ delta))
-        return retract(x, delta), finite, small, predicted
-
-    false = jnp.array(False)
-    init = _State(
-        k=jnp.array(0, jnp.int32), x=x0, r=jnp.zeros(num_residuals, dtype),
-        J=jnp.zeros((num_residuals, num_unknowns), dtype), lam=lam0,
-        nu=jnp.array(2.0, dtype), done=~jnp.asarray(active), converged=false, x_try=x0,
-        finite=jnp.array(True), small=false, predicted=jnp.array(0.0, dtype),
-    )  # fmt: skip
-
-    def cond(s: _State):
-        return (s.k <= max_steps) & ~s.done
-
-    def body(s: _State):
-        r_new, J_new = model(s.x_try)
-        first = s.k == 0
-        cost, cost_new = jnp.sum(s.r * s.r), jnp.sum(r_new * r_new)
-        ok_new = s.finite & jnp.isfinite(cost_new)
-        accept = first | (ok_new & (cost_new <= cost) if damped else ok_new)
-        # A rejected step that is already negligible: the minimum within rounding.
-        done = ~first & (accept | (s.lam < 1e-3)) & s.finite & s.small
-        pick = ft.partial(jax.tree.map, lambda a, b: jnp.where(accept, a, b))
-        if damped:
-            gain = (cost - cost_new) / jnp.where(s.predicted > 0, s.predicted, 1.0)
-            shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3)
-            lam = jnp.clip(jnp.where(accept, s.lam * shrink, s.lam * s.nu), _LAM_MIN, _LAM_MAX)
-            lam = jnp.where(first, s.lam, lam).astype(dtype)
-            nu = jnp.where(first | accept, 2.0, 2.0 * s.nu).astype(dtype)
-        else:
-            lam, nu = s.lam, s.nu
-        x, r, J = pick(s.x_try, s.x), pick(r_new, s.r), pick(J_new, s.J)
-        x_try, finite, small, predicted = propose(x, r, J, lam)
-        return _State(s.k + 1, x, r, J, lam, nu, done, done, x_try, finite, small, predicted)
-
-    out = jax.lax.while_loop(cond, body, init)
-    x = out.x
-    if final_gauss_newton:
-        H, g = gram(out.J), jnp.sum(out.J * out.r[:, None], axis=0)
-        delta, ok = solve_spd(H, -g)
-        polished = retract(x, delta)
-        x = jax.tree.map(lambda a, b: jnp.where(ok & out.converged, a, b), polished, x)
-    return LMResult(x, jnp.maximum(out.k - 1, 0), out.converged, out.r, out.J)
+    settings = LMSettings(rtol, atol, damped, decrease_tol, final_gauss_newton)
+    state = lm_start(x0, num_unknowns, active=active, lam0=lam0)
+    state = lm_continue(model, retract, scale, state, settings, max_steps)
+    return lm_result(state, retract, settings)
 
 
 def gauss_newton(model, retract, x0: PyTree, *, steps: int, lam: float) -> PyTree:

@@ -17,6 +17,8 @@ Derivatives are with respect to jaxlie's right perturbation `T exp(delta)`,
 `R_m^T R_i^T R_j (v - [m_j]x omega)`.
 """
 
+import functools as ft
+
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -29,23 +31,33 @@ def _same_rank(*xs):
     return [x.reshape((1,) * (n - x.ndim) + x.shape) for x in xs]
 
 
+def _contract(a: Array, b: Array, axis_a: int, axis_b: int) -> Array:
+    """`sum_k a[..k..] * b[..k..]` over a small static axis, written out as products and
+    sums (no `reduce`: XLA fuses it into the surrounding element-wise loop)."""
+    n = a.shape[axis_a]
+    terms = [
+        jnp.take(a, k, axis=axis_a) * jnp.take(b, k, axis=axis_b) for k in range(n)
+    ]
+    return ft.reduce(lambda x, y: x + y, terms)
+
+
 def matvec_t(R: Float[Array, "*b 3 3"], x: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """`R^T x`, element-wise (broadcasts over leading axes; no `dot`)."""
     R, x = _same_rank(R, x[..., :, None])
-    return jnp.sum(R * x, axis=-2)
+    return _contract(R, x, -2, -2)
 
 
 def matvec(R: Float[Array, "*b 3 3"], x: Float[Array, "*b 3"]) -> Float[Array, "*b 3"]:
     """`R x`, element-wise (broadcasts over leading axes; no `dot`)."""
     R, x = _same_rank(R, x[..., None, :])
-    return jnp.sum(R * x, axis=-1)
+    return _contract(R, x, -1, -1)
 
 
 def matmul(a: Float[Array, "*b x y"], b: Float[Array, "*b y z"]) -> Float[Array, "*b x z"]:
     """Batched small matrix product, element-wise: XLA's CPU `dot` kernels are slow on
     tiny batched shapes, element-wise products fuse. Broadcasts over leading axes."""
     a, b = _same_rank(a[..., :, :, None], b[..., None, :, :])
-    return jnp.sum(a * b, axis=-2)
+    return _contract(a, b, -2, -2)
 
 
 def skew(a: Float[Array, "*b 3"]) -> Float[Array, "*b 3 3"]:

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._core.linalg import gram, spd_inverse
+from .._core.linalg import spd_inverse
 from .._cycle.estimate import CycleCovariance, CycleEstimate
 from .._cycle.layout import first_sighting, num_steps, placement_ids
 from .._cycle.observations import CycleObservations, CyclePoses
@@ -33,10 +33,10 @@ from .._cycle.rig import Rig
 from .measurements import (
     cycle_data,
     CycleData,
+    normal_equations,
     odometry_weight,
     pixel_weights,
     predict,
-    residuals_and_jacobian,
     unpack,
     visible,
 )
@@ -132,8 +132,8 @@ def with_offset(
 
 def covariance_at(T_place, T_over, data: CycleData, rig: Rig, strategy: str) -> CycleCovariance:
     """$(J^\\top J)^{-1}$ of the whitened measurements `data` at the given poses."""
-    _, J = residuals_and_jacobian(T_place, T_over, data, rig, strategy)
-    return covariance_from_information(gram(J), T_place, T_over, strategy)
+    H = normal_equations(T_place, T_over, data, rig, strategy).H
+    return covariance_from_information(H, T_place, T_over, strategy)
 
 
 def estimate_placements(poses: CyclePoses, strategy: str):

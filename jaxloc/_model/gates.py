@@ -25,19 +25,21 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   moves, a near-collinear formation).
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._core.linalg import gram, spd_inverse
+from .._core.least_squares import solve_spd
+from .._core.linalg import spd_inverse
 from .._core.results import RESULTS
-from .._cycle.estimate import CycleCovariance, FitCheck
+from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_placements
 from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
-from .covariance import covariance_of_tangent, final_offsets, with_offset
-from .measurements import CycleData, residuals_and_jacobian, unpack, whitened
+from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
+from .measurements import CycleData, normal_equations, unpack, whitened
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -99,10 +101,8 @@ def observable(covariance: CycleCovariance, size) -> Array:
 def _gauss_newton_step(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
     """One undamped Gauss--Newton step on the whitened residuals (no step where the
     information is singular or the step not finite)."""
-    r, J = residuals_and_jacobian(T_place, T_over, data, rig, strategy)
-    covariance, ok = spd_inverse(gram(J))
-    step = -covariance @ (J.T @ r)
-    step = jnp.where(ok & jnp.all(jnp.isfinite(step)), step, 0.0)
+    _, H, g = normal_equations(T_place, T_over, data, rig, strategy)
+    step, _ = solve_spd(H, -g)
     return unpack(step, T_place, T_over)
 
 
@@ -150,7 +150,7 @@ def _tangent_offset(T_place, T_over, T_place0, T_over0):
     return jnp.concatenate([d, log_between(T_over, T_over0)])
 
 
-def _final_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
+def end_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
     """End-of-cycle poses (C's optical frame, C1, C2, C3) of placements `T_place`."""
     return jnp.concatenate([T_over[None], T_place[placement_ids(strategy)[-1]]])
 
@@ -163,54 +163,24 @@ def _pose_differences(T_a, T_b) -> tuple[Float[Array, "4 3"], Float[Array, "4 3"
     return a.translation() - b.translation(), rotation
 
 
-def check(
-    T_place,
-    T_over,
-    data: CycleData,
-    rig: Rig,
-    strategy: str,
-    solver_result: RESULTS,
-    *,
-    polish: bool = True,
-    final_poses: Float[Array, "4 7"] | None = None,
-    rivals=None,
-) -> tuple[RESULTS, FitCheck, CycleCovariance]:
-    """Gate an estimate whose placements are at `T_place` and whose overhead camera is at
-    `T_over`: `(result, checks, covariance)`. `result` is `solver_result` when that is a
-    failure; else `unobservable` or `inconsistent_fit` when a gate fails, else
-    `successful`.
-
-    With `polish` (for an estimate that is not a converged refinement, e.g. a closed
-    form) the gates look at the point `POLISH_STEPS` Gauss--Newton steps away, the
-    maximum-likelihood optimum to well within its uncertainty. The covariance is the
-    estimate's own, to first order: the maximum-likelihood estimator's `(J^T J)^-1` there
-    plus `d d^T`, `d` the estimate's offset from that point and from the optimum of the
-    model linearized there (zero at a converged refinement). `final_poses`: the
-    estimate's own end-of-cycle poses of (C's optical frame, C1, C2, C3) in `W`
-    (`wxyz_xyz`), where they differ from the placements' (a closed form solves a
-    stationary robot's pose again at every step); default: the placements'. `rivals`:
-    other starts `(T_place (k, placements, 7), T_over (k, 7), active (k,))` (the
-    closed form's other local minima); polished too, a distinct one that fits almost as
-    well makes the estimate `ambiguous`."""
+def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
+              solver_result: RESULTS, polished: bool, final_poses):  # fmt: skip
+    """The gates of an estimate `(T_place, T_over)` with end-of-cycle poses `final_poses`,
+    evaluated at `(P, O)`: the estimate itself, or its polished optimum when `polished`
+    (see [`gate_all`][]). Returns `(result, checks, covariance)`."""
     dtype = T_place.dtype
-    P, O = T_place, T_over
-    if polish:
-        P, O = polish_to_optimum(P, O, data, rig, strategy)
-    r, J = residuals_and_jacobian(P, O, data, rig, strategy)
-    ml_covariance, ok_information = spd_inverse(gram(J))
-    unknowns = J.shape[1]
+    chi2, H, g = normal_equations(P, O, data, rig, strategy)
+    ml_covariance, ok_information = spd_inverse(H)
+    unknowns = g.shape[0]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
-    chi2 = jnp.sum(r * r)
-    g = jnp.sum(J * r[:, None], axis=0)
     # The step to the minimum of the model linearized here, and the misfit left there.
     step = -ml_covariance @ g
     chi2_min = jnp.maximum(chi2 + g @ step, 0.0)
     ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy)
     offset = -step
     dp, dr = final_offsets(offset, P, O, strategy)
-    if polish:
-        own = _final_poses(T_place, T_over, strategy) if final_poses is None else final_poses
-        own_dp, own_dr = _pose_differences(own, _final_poses(P, O, strategy))
+    if polished:
+        own_dp, own_dr = _pose_differences(final_poses, end_poses(P, O, strategy))
         offset = offset + _tangent_offset(T_place, T_over, P, O)
         moved = jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
         dp = dp + jnp.where(moved, own_dp, 0.0)
@@ -223,7 +193,91 @@ def check(
     result = RESULTS.where(
         (result == RESULTS.successful) & ~(chi2_min <= limit), RESULTS.inconsistent_fit, result
     )
-    if rivals is not None:
-        result = mark_ambiguous(result, chi2, _runner_up_chi2(rivals, O, data, rig, strategy))
     checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable)
     return result, checks, covariance
+
+
+class GatePoint(eqx.Module):
+    """Where and on what an estimate is gated: its placements `(placements, 7)`, overhead
+    camera `(7,)` and end-of-cycle poses `(4, 7)` of (C's optical frame, C1, C2, C3)
+    (`wxyz_xyz`, in `W`), the whitened measurements, and the solver's own status. Stacked
+    along a leading axis, several estimates are gated by one `vmap` ([`gate_all`][]): one
+    traced copy of the gates, a smaller program."""
+
+    T_place: Float[Array, "placements 7"]
+    T_over: Float[Array, "7"]
+    final_poses: Float[Array, "4 7"]
+    data: CycleData
+    solver_result: RESULTS
+
+
+def gate_point(estimate: CycleEstimate, data: CycleData, strategy: str) -> GatePoint:
+    """The [`GatePoint`][] of an (ungated) estimate: its placements where each first
+    occurs and its end-of-cycle poses (identity where not finite: a failed solver's
+    poses), its `result` as the solver's status."""
+    T_place, T_over = estimate_placements(estimate.poses, strategy)
+    ident = jnp.zeros(7, T_place.dtype).at[0].set(1.0)
+    finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
+    T_place, T_over = jnp.where(finite, T_place, ident), jnp.where(finite, T_over, ident)
+    poses = estimate.poses
+    final = jnp.concatenate(
+        [poses.T_world_overhead.wxyz_xyz[None], poses.T_world_body.wxyz_xyz[-1]]
+    )
+    final = jnp.where(jnp.all(jnp.isfinite(final)), final, ident)
+    return GatePoint(T_place, T_over, final, data, estimate.result)
+
+
+def gate_rivals(estimate: CycleEstimate, point: GatePoint, strategy: str):
+    """The other starts an estimate carries (its `alternatives`) as its `rivals` in
+    [`gate_all`][], or `None`."""
+    if estimate.alternatives is None:
+        return None
+    return start_placements(estimate.alternatives, estimate.scales, strategy, point.T_place)
+
+
+def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, rivals=None):
+    """Gate every point, as one `vmap`: a list of `(result, checks, covariance)`, one per
+    point. `result` is the point's `solver_result` when that is a failure; else
+    `unobservable` or `inconsistent_fit` when a gate fails, else `successful`.
+
+    With `polish` (for estimates that are not converged refinements, e.g. closed forms)
+    the gates look at the point `POLISH_STEPS` Gauss--Newton steps away, the
+    maximum-likelihood optimum to well within its uncertainty. The covariance is the
+    estimate's own, to first order: the maximum-likelihood estimator's `(J^T J)^-1` there
+    plus `d d^T`, `d` the estimate's offset from that point (its own end-of-cycle poses
+    against the optimum's: a closed form solves a stationary robot's pose again at every
+    step) and from the optimum of the model linearized there (zero at a converged
+    refinement). `rivals`: per point, `None` or other starts `(T_place (k, placements,
+    7), T_over (k, 7), active (k,))` (a closed form's other local minima, see
+    [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
+    estimate `ambiguous`."""
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
+
+    def one(p: GatePoint):
+        if polish:
+            P, O = polish_to_optimum(p.T_place, p.T_over, p.data, rig, strategy)
+        else:
+            P, O = p.T_place, p.T_over
+        gate = _gates_at(
+            P, O, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
+            p.final_poses,
+        )  # fmt: skip
+        return gate, O
+
+    out, O_all = jax.vmap(one)(stacked)
+    gates = []
+    for i, (point, rival) in enumerate(zip(points, rivals or [None] * len(points))):
+        result, checks, covariance = jax.tree.map(lambda x, i=i: x[i], out)
+        if rival is not None:
+            runner_up = _runner_up_chi2(rival, O_all[i], point.data, rig, strategy)
+            result = mark_ambiguous(result, checks.chi2, runner_up)
+        gates.append((result, checks, covariance))
+    return gates
+
+
+def gated(estimate: CycleEstimate, gate) -> CycleEstimate:
+    """`estimate` with the result, checks and covariance of its gates."""
+    result, checks, covariance = gate
+    return eqx.tree_at(
+        lambda e: (e.result, e.checks, e.covariance), estimate, (result, checks, covariance)
+    )

@@ -17,6 +17,9 @@ differentiated, by each model's closed-form `project_with_jacobian`. About 20x c
 than `jax.jacfwd` over the ~40 stacked tangent directions.
 """
 
+import functools as ft
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -24,6 +27,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._core.least_squares import NormalEquations
 from .._core.numerics import safe_norm
 from .._core.poses import rplus
 from .._cycle.layout import move_start_step, moving_robot, placement_ids
@@ -235,49 +239,81 @@ def unpack(theta, T0_place, T0_over):
     return T_place, T_over.astype(T0_over.dtype)
 
 
+#: The ordered pairs (observer, target) of mutual sightings, grouped by observer.
+OBSERVER = np.array([0, 0, 1, 1, 2, 2])
+TARGET = np.array([1, 2, 0, 2, 0, 1])
+
+
+def residual_poses(strategy: str) -> np.ndarray:
+    """The two poses each whitened residual depends on, `(m, 2)` int, in the row order of
+    [`whitened`][]: pose `p < placements` is a placement, `placements` the overhead
+    camera. Rows: mutual sightings `(steps, 6 pairs, 2)` as (observer, target), overhead
+    sightings `(steps, 3, 2)` as (robot, camera), odometry `(moves,)` as (end, start)."""
+    ids = placement_ids(strategy)
+    n = int(ids.max()) + 1
+    mutual = np.stack([ids[:, OBSERVER], ids[:, TARGET]], -1)  # (steps, 6, 2)
+    mutual = np.repeat(mutual[:, :, None], 2, axis=2).reshape(-1, 2)
+    overhead = np.stack([ids, np.full_like(ids, n)], -1)
+    overhead = np.repeat(overhead[:, :, None], 2, axis=2).reshape(-1, 2)
+    starts, movers = move_start_step(strategy), moving_robot(strategy)
+    odometry = np.stack([ids[starts + 1, movers], ids[starts, movers]], -1)
+    return np.concatenate([mutual, overhead, odometry]).astype(np.int32)
+
+
 def whitened(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
-    """Whitened residuals `(m,)`: mutual pixels, overhead pixels, odometry."""
+    """Whitened residuals `(m,)`: mutual pixels (the six ordered pairs of each step),
+    overhead pixels, odometry (the rows of [`residual_poses`][])."""
     mutual, overhead, lengths = predict(T_place, T_over, rig, strategy)
-    r_m = data.mutual_weight[..., None] * (mutual - data.mutual_pixels)
+    pair = (slice(None), OBSERVER, TARGET)
+    r_m = data.mutual_weight[pair][..., None] * (mutual[pair] - data.mutual_pixels[pair])
     r_o = data.overhead_weight[..., None] * (overhead - data.overhead_pixels)
     r_d = data.odometry_weight * (lengths - data.odometry)
     return jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
 
 
-def whitened_with_jacobian(
+def whitened_blocks(
     T_place: Float[Array, "placements 7"],
     T_over: Float[Array, "7"],
     data: CycleData,
     rig: Rig,
     strategy: str,
-):
-    """Whitened residuals and their Jacobian w.r.t. a right perturbation of every pose.
+) -> tuple[Float[Array, " m"], Float[Array, "m 2 6"]]:
+    """Whitened residuals and their Jacobian as two blocks per row.
 
-    **Returns:** `(r, J)`: `r` as [`whitened`][] `(m,)`; `J` of shape `(m, placements + 1,
-    6)`: column block `p < placements` is placement `p`'s `delta = (v, omega)` in
-    `T_place[p] exp(delta)`, the last block the overhead camera's.
+    **Returns:** `(r, B)`: `r` as [`whitened`][] `(m,)`; `B[row, k]` `(6,)` the derivative
+    of the row with respect to the right perturbation `delta = (v, omega)` of pose
+    `residual_poses(strategy)[row, k]` (`T exp(delta)`). Every residual depends on two
+    poses only, so this is the whole Jacobian.
     """
     dtype = T_place.dtype
-    ids = placement_ids(strategy)
-    n = T_place.shape[0]
     g = geometry(T_place, T_over, rig, strategy)
     R = g.R_body
-    # Mutual sightings: pixels, and the two pose blocks through the camera's Jacobian.
+    steps = R.shape[0]
+    pair = (slice(None), OBSERVER, TARGET)
+    # Mutual sightings, grouped by observer for its camera: (steps, 3 observers, 2, ...).
+    by_observer = g.mutual_cam[pair].reshape(steps, 3, 2, 3)
     uv, Jp = ground_cameras_apply(
-        rig, lambda cam, x: cam.project_with_jacobian(x), _by_observer(g.mutual_cam)
+        rig, lambda cam, x: cam.project_with_jacobian(x), _by_observer(by_observer)
     )
-    mutual, Jp = _from_observer(uv), _from_observer(Jp)  # (steps, i, j, 2), (.., 2, 3)
-    observer = matmul(Jp, observer_jacobian(g.mount_R[None, :, None], g.mutual_body))
+    mutual = _from_observer(uv).reshape(steps, 6, 2)
+    Jp = _from_observer(Jp).reshape(steps, 6, 2, 3)
+    mount_R = g.mount_R[OBSERVER][None]
+    observer = matmul(Jp, observer_jacobian(mount_R, g.mutual_body[pair]))
     Rt = jnp.swapaxes(R, -1, -2)
-    RiT_Rj = matmul(Rt[:, :, None], R[:, None, :])  # [k, i, j] = R_i^T R_j
-    A = matmul(jnp.swapaxes(g.mount_R, -1, -2)[None, :, None], RiT_Rj)
-    target = matmul(Jp, target_jacobian(A, g.markers[None, None, :, :]))
-    # Overhead sightings.
+    A = matmul(jnp.swapaxes(mount_R, -1, -2), matmul(Rt[:, OBSERVER], R[:, TARGET]))
+    target = matmul(Jp, target_jacobian(A, g.markers[TARGET][None]))
+    w_m = data.mutual_weight[pair]
+    r_m = w_m[..., None] * (mutual - data.mutual_pixels[pair])
+    B_m = w_m[..., None, None, None] * jnp.stack([observer, target], axis=-2)
+    # Overhead sightings: (robot, camera).
     overhead, Jo = rig.overhead.project_with_jacobian(g.over_cam)
     over_cam = matmul(Jo, camera_pose_jacobian(g.over_cam))
     A_o = matmul(jnp.swapaxes(g.R_over, -1, -2)[None, None], R)
     over_pt = matmul(Jo, target_jacobian(A_o, g.markers[None]))
-    # Odometry: the mover's body origin.
+    w_o = data.overhead_weight
+    r_o = w_o[..., None] * (overhead - data.overhead_pixels)
+    B_o = w_o[..., None, None, None] * jnp.stack([over_pt, over_cam], axis=-2)
+    # Odometry: the mover's body origin, (end, start).
     starts, movers = move_start_step(strategy), moving_robot(strategy)
     step = g.p_body[starts + 1, movers] - g.p_body[starts, movers]
     lengths = safe_norm(step)
@@ -285,48 +321,111 @@ def whitened_with_jacobian(
     u_end = jnp.sum(u[:, :, None] * R[starts + 1, movers], axis=-2)  # u^T R
     u_start = -jnp.sum(u[:, :, None] * R[starts, movers], axis=-2)
     zeros3 = jnp.zeros_like(u_end)
-
-    r_m = data.mutual_weight[..., None] * (mutual - data.mutual_pixels)
-    r_o = data.overhead_weight[..., None] * (overhead - data.overhead_pixels)
     r_d = data.odometry_weight * (lengths - data.odometry)
-    r = jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
-
-    # Place the two-pose blocks in columns (rows, placements + 1, 6) with static masks
-    # (element-wise: XLA's CPU dot kernels are slow on these tiny batched shapes).
-    cols = np.arange(n + 1)
-    at = (ids[..., None] == cols).astype(np.float64)  # (steps, 3, n + 1)
-    w_m = data.mutual_weight[..., None, None, None]
-    J_m = w_m * (
-        jnp.asarray(at[:, :, None, None, :, None], dtype) * observer[..., None, :]
-        + jnp.asarray(at[:, None, :, None, :, None], dtype) * target[..., None, :]
-    )  # (steps, i, j, 2, n + 1, 6)
-    w_o = data.overhead_weight[..., None, None, None]
-    is_cam = (cols == n).astype(np.float64)
-    J_o = w_o * (
-        jnp.asarray(at[:, :, None, :, None], dtype) * over_pt[..., None, :]
-        + jnp.asarray(is_cam[None, None, None, :, None], dtype) * over_cam[..., None, :]
-    )  # (steps, j, 2, n + 1, 6)
-    at_end = (ids[starts + 1, movers][:, None] == cols).astype(np.float64)
-    at_start = (ids[starts, movers][:, None] == cols).astype(np.float64)
-    d_end = jnp.concatenate([u_end, zeros3], -1)[:, None, :]
-    d_start = jnp.concatenate([u_start, zeros3], -1)[:, None, :]
-    J_d = data.odometry_weight[:, None, None] * (
-        jnp.asarray(at_end[..., None], dtype) * d_end
-        + jnp.asarray(at_start[..., None], dtype) * d_start
+    B_d = data.odometry_weight[:, None, None] * jnp.stack(
+        [jnp.concatenate([u_end, zeros3], -1), jnp.concatenate([u_start, zeros3], -1)], axis=-2
     )
-    J = jnp.concatenate([J_m.reshape(-1, n + 1, 6), J_o.reshape(-1, n + 1, 6), J_d], axis=0)
+    r = jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d]).astype(dtype)
+    B = jnp.concatenate([B_m.reshape(-1, 2, 6), B_o.reshape(-1, 2, 6), B_d]).astype(dtype)
+    return r, B
+
+
+def whitened_with_jacobian(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """Whitened residuals `(m,)` and their dense Jacobian `(m, placements + 1, 6)`: column
+    block `p < placements` is placement `p`'s right perturbation, the last block the
+    overhead camera's."""
+    r, B = whitened_blocks(T_place, T_over, data, rig, strategy)
+    poses = residual_poses(strategy)
+    at = (poses[:, :, None] == np.arange(T_place.shape[0] + 1)).astype(np.float64)
+    J = jnp.sum(jnp.asarray(at, B.dtype)[..., None] * B[:, :, None, :], axis=1)
     return r, J
 
 
-def flat_jacobian(J_local: Float[Array, "m p 6"]) -> Float[Array, "m n"]:
-    """Drop placement 0 (the gauge) from a [`whitened_with_jacobian`][] Jacobian and
-    flatten it to the tangent layout of [`unpack`][]: placements 1, 2, ..., overhead."""
-    return J_local[:, 1:].reshape(J_local.shape[0], -1)
+def _runs(rows: list[int]) -> list[tuple[int, int]]:
+    """Sorted row indices as `[start, stop)` runs of consecutive rows."""
+    runs: list[tuple[int, int]] = []
+    for row in sorted(rows):
+        if runs and runs[-1][1] == row:
+            runs[-1] = (runs[-1][0], row + 1)
+        else:
+            runs.append((row, row + 1))
+    return runs
 
 
-def residuals_and_jacobian(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
-    """Whitened residuals `(m,)` and their Jacobian `(m, 6 * placements)` with respect to
-    the right perturbations of every placement but the gauge, then of the overhead
-    camera (the tangent layout of [`unpack`][])."""
-    r, J = whitened_with_jacobian(T_place, T_over, data, rig, strategy)
-    return r, flat_jacobian(J)
+class _NormalPlan(NamedTuple):
+    """Which rows' products make each block of the normal equations, as runs of
+    consecutive rows (static; see [`normal_equations`][]). Unknown pose `u` is pose
+    `u + 1` (pose 0 is the gauge). `diagonal[u]`: runs of `(k, runs)`, rows whose block
+    `k` is pose `u`'s; `upper[(u, v)]` (`u < v`): runs of `(transposed, runs)`, rows
+    joining poses `u` and `v` (`transposed` when the row's first block is `v`'s)."""
+
+    diagonal: tuple
+    upper: dict
+    num_unknown_poses: int
+
+
+@ft.cache
+def _normal_plan(strategy: str) -> _NormalPlan:
+    poses = residual_poses(strategy)
+    n = int(poses.max())
+    diagonal = []
+    for u in range(1, n + 1):
+        diagonal.append(tuple((k, tuple(_runs(np.flatnonzero(poses[:, k] == u).tolist())))
+                              for k in (0, 1)))  # fmt: skip
+    upper = {}
+    for a, b in {(int(min(p)), int(max(p))) for p in poses if min(p) > 0}:
+        entries = []
+        for transposed in (False, True):
+            first, second = (b, a) if transposed else (a, b)
+            rows = np.flatnonzero((poses[:, 0] == first) & (poses[:, 1] == second))
+            entries.append((transposed, tuple(_runs(rows.tolist()))))
+        upper[(a - 1, b - 1)] = tuple(entries)
+    return _NormalPlan(tuple(diagonal), upper, n)
+
+
+def _sum_runs(x: Array, runs) -> Array:
+    """Sum of `x[start:stop]` over the runs (static slices: no gather)."""
+    total = jnp.zeros(x.shape[1:], x.dtype)
+    for start, stop in runs:
+        total = total + jnp.sum(x[start:stop], axis=0)
+    return total
+
+
+def normal_equations(
+    T_place: Float[Array, "placements 7"],
+    T_over: Float[Array, "7"],
+    data: CycleData,
+    rig: Rig,
+    strategy: str,
+) -> NormalEquations:
+    """The cost `r^T r`, `H = J^T J` and `g = J^T r` of the whitened residuals with
+    respect to the tangent of [`unpack`][] (placements 1, 2, ... then the overhead camera;
+    placement 0 is the gauge), without a dense Jacobian.
+
+    Each row touches two poses ([`whitened_blocks`][]): its three `6 x 6` products go to
+    two diagonal blocks and one off-diagonal block of `H`, summed over static runs of
+    rows (slices, no gathers), about a tenth of the products of `J^T J` with a dense `J`.
+    """
+    r, B = whitened_blocks(T_place, T_over, data, rig, strategy)
+    plan = _normal_plan(strategy)
+    dtype = r.dtype
+    a, b = B[:, 0], B[:, 1]
+    outer = jnp.stack([a[:, :, None] * a[:, None, :], b[:, :, None] * b[:, None, :]], 1)
+    cross = a[:, :, None] * b[:, None, :]  # (m, 6, 6): block (first pose, second pose)
+    grads = B * r[:, None, None]  # (m, 2, 6)
+    n = plan.num_unknown_poses
+    zero = jnp.zeros((6, 6), dtype)
+    H = [[zero] * n for _ in range(n)]
+    g = []
+    for u, per_block in enumerate(plan.diagonal):
+        H[u][u] = sum((_sum_runs(outer[:, k], runs) for k, runs in per_block), start=zero)
+        g.append(sum((_sum_runs(grads[:, k], runs) for k, runs in per_block), jnp.zeros(6, dtype)))
+    for (u, v), entries in plan.upper.items():
+        block = zero
+        for transposed, runs in entries:
+            if runs:
+                part = _sum_runs(cross, runs)
+                block = block + (part.T if transposed else part)
+        H[u][v], H[v][u] = block, block.T
+    H = jnp.concatenate([jnp.concatenate(row, axis=1) for row in H], axis=0)
+    return NormalEquations(jnp.sum(r * r), H, jnp.concatenate(g))

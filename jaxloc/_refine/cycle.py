@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import optimistix as optx
+from jaxtyping import Array
 
 from .._core.least_squares import (
     implicit_step,
@@ -33,12 +34,12 @@ from .._cycle.layout import placement_ids
 from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
-from .._model.gates import check, DISTINCT_MINIMUM, mark_ambiguous
+from .._model.gates import DISTINCT_MINIMUM, gate_all, gate_point, gated, mark_ambiguous
 from .._model.measurements import (
     cycle_data,
     CycleData,
+    normal_equations,
     predict,
-    residuals_and_jacobian,
     unpack,
     whitened,
     whitened_with_jacobian,
@@ -108,11 +109,10 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active):
     precision of 100 per m^2 / rad^2."""
     n = T0_place.shape[0]
     out = levenberg_marquardt(
-        lambda x: residuals_and_jacobian(x[0], x[1], data, rig, strategy),
+        lambda x: normal_equations(x[0], x[1], data, rig, strategy),
         lambda x, delta: unpack(delta, *x),
         lambda x: jnp.max(jnp.abs(x[0][:, 4:])),
         (T0_place, T0_over),
-        num_residuals=data.mutual_pixels.size + data.overhead_pixels.size + data.odometry.size,
         num_unknowns=6 * n,
         max_steps=max_steps,
         rtol=rtol,
@@ -180,7 +180,8 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol):
 
 def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, settings):
     """The default solver: one start, or the multi-start when the estimate carries other
-    starts. Returns `(T_place, T_over, num_steps, converged, multi_start_stats)`."""
+    starts. Returns `(T_place, T_over, num_steps, converged, multi_start_stats,
+    runner_up_chi2)` (`inf` without other starts)."""
     max_steps, rtol, atol = settings
     # The loop is not differentiated: `implicit_step` carries the derivatives.
     T0_place, T0_over, data, rig = jax.tree.map(
@@ -188,7 +189,7 @@ def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, set
     )
     if estimate.alternatives is None:
         out = _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active)
-        return *out, {}
+        return *out, {}, jnp.array(jnp.inf, T0_place.dtype)
     T1_place, T1_over, active1 = jax.lax.stop_gradient(
         start_placements(estimate.alternatives, estimate.scales, strategy, T0_place)
     )
@@ -201,7 +202,7 @@ def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, set
         starts, active, data, rig, strategy, max_steps, rtol, atol
     )
     stats = {"start_picked": picked, "runner_up_chi2": runner_up_chi2}
-    return T_place, T_over, num_steps, converged, stats
+    return T_place, T_over, num_steps, converged, stats, runner_up_chi2
 
 
 def _optx_refine(T0_place, T0_over, data, rig, strategy, solver, settings):
@@ -253,15 +254,21 @@ def _statistics(T_place, T_over, data: CycleData, rig, strategy):
     }
 
 
-@eqx.filter_jit(inline=True)
-def _refine_cycle_impl(observations, rig, estimate, *, solver, max_steps, rtol, atol):
+def refine_solution(
+    observations: CycleObservations, rig: Rig, estimate: CycleEstimate, *, solver: str,
+    max_steps: int, rtol, atol,
+) -> tuple[CycleEstimate, Array]:
+    """[`jaxloc.refine_cycle`][] before the gates: the refined estimate (`result` the
+    solver's status; `checks` and `covariance` not computed) and the cost of another
+    distinct minimum a multi-start found (`inf` if none), which decides `ambiguous`
+    ([`finish_refinement`][])."""
     strategy = observations.strategy
     data = cycle_data(observations, rig)
     T0_place, T0_over, active = _start(estimate, strategy)
     settings = (max_steps, rtol, atol)
     stats = dict(estimate.stats)
     if solver == "lm":
-        T_place, T_over, num_steps, converged, multi = _kernel_refine(
+        T_place, T_over, num_steps, converged, multi, runner_up_chi2 = _kernel_refine(
             estimate, T0_place, T0_over, data, rig, strategy, active, settings
         )
         stats.update(multi)
@@ -274,24 +281,42 @@ def _refine_cycle_impl(observations, rig, estimate, *, solver, max_steps, rtol, 
         T_place, T_over, num_steps, result = _optx_refine(
             T0_place, T0_over, data, rig, strategy, solver, settings
         )
+        runner_up_chi2 = jnp.array(jnp.inf, T0_place.dtype)
     finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
     result = RESULTS.where(finite, result, RESULTS.no_valid_solution)
     result = RESULTS.where(active, result, estimate.result)
     ok = result == RESULTS.successful
     T_place = jnp.where(ok, T_place, T0_place)
     T_over = jnp.where(ok, T_over, T0_over)
-    result, checks, covariance = check(T_place, T_over, data, rig, strategy, result, polish=False)
-    if "runner_up_chi2" in stats:
-        result = mark_ambiguous(result, checks.chi2, stats["runner_up_chi2"])
-    solved = ok
     ids = placement_ids(strategy)
-    T_world_body = jnp.where(solved, T_place[ids], estimate.poses.T_world_body.wxyz_xyz)
-    T_world_over = jnp.where(solved, T_over, estimate.poses.T_world_overhead.wxyz_xyz)
+    T_world_body = jnp.where(ok, T_place[ids], estimate.poses.T_world_body.wxyz_xyz)
+    T_world_over = jnp.where(ok, T_over, estimate.poses.T_world_overhead.wxyz_xyz)
     poses = CyclePoses(jaxlie.SE3(T_world_body), jaxlie.SE3(T_world_over))
     stats.update(_statistics(T_place, T_over, data, rig, strategy), num_steps=num_steps)
-    return CycleEstimate(
-        poses, estimate.scales, result, stats, checks, covariance, estimate.alternatives
+    refined = CycleEstimate(
+        poses, estimate.scales, result, stats, estimate.checks, estimate.covariance,
+        estimate.alternatives,
+    )  # fmt: skip
+    return refined, runner_up_chi2
+
+
+def finish_refinement(refined: CycleEstimate, runner_up_chi2, gate) -> CycleEstimate:
+    """A [`refine_solution`][] with its gates (`(result, checks, covariance)` of
+    `jaxloc._model.gates.gate_all`, unpolished): `ambiguous` when another distinct
+    minimum's cost is within `AMBIGUITY_MARGIN` of the solution's."""
+    refined = gated(refined, gate)
+    result = mark_ambiguous(refined.result, refined.checks.chi2, runner_up_chi2)
+    return eqx.tree_at(lambda e: e.result, refined, result)
+
+
+@eqx.filter_jit(inline=True)
+def _refine_cycle_impl(observations, rig, estimate, *, solver, max_steps, rtol, atol):
+    refined, runner_up_chi2 = refine_solution(
+        observations, rig, estimate, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol
     )
+    point = gate_point(refined, cycle_data(observations, rig), observations.strategy)
+    (gate,) = gate_all([point], rig, observations.strategy, polish=False)
+    return finish_refinement(refined, runner_up_chi2, gate)
 
 
 def refine_cycle(

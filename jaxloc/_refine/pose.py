@@ -20,7 +20,12 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from .._cameras.models import AbstractCamera
-from .._core.least_squares import implicit_step, levenberg_marquardt, optx_solver
+from .._core.least_squares import (
+    implicit_step,
+    levenberg_marquardt,
+    normal_equations,
+    optx_solver,
+)
 from .._core.linalg import gram, unrolled_spd_inverse
 from .._core.numerics import safe_sqrt
 from .._core.poses import apply, inverse, rplus, rplus_params
@@ -114,7 +119,7 @@ def _residuals_and_jacobian(T_cam_world: jaxlie.SE3, camera, X, uv, weight, c, l
 
 def _pose_model(params, camera, X, uv, weight, c, loss):
     r, J = _residuals_and_jacobian(jaxlie.SE3(params), camera, X, uv, weight, c, loss)
-    return r.reshape(-1), J.reshape(-1, 6)
+    return normal_equations(r.reshape(-1), J.reshape(-1, 6))
 
 
 def _implicit_residuals(params, delta, args, static):
@@ -158,7 +163,6 @@ def _refine_pose_impl(
             rplus_params,
             lambda x: jnp.max(jnp.abs(x[4:])),
             T0s.wxyz_xyz,
-            num_residuals=2 * X.shape[0],
             num_unknowns=6,
             max_steps=max_steps,
             rtol=rtol,

@@ -35,10 +35,9 @@ def _distance(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
     return safe_norm(a - b)
 
 
-def _gauss_newton(model, x0, *, num_residuals: int, steps: int, lam: float, retract=None):
+def _gauss_newton(model, x0, *, steps: int, lam: float, retract=None):
     """`steps` Gauss--Newton steps (no convergence test) with a fixed tiny damping `lam`
     that regularizes directions no residual touches (reverse-differentiable)."""
-    del num_residuals
     if retract is None:
         retract = lambda x, delta: x + delta  # noqa: E731
     return gauss_newton(model, retract, x0, steps=steps, lam=lam)
@@ -144,7 +143,7 @@ def _overhead_ratios(view) -> tuple[Float[Array, "4 7"], Float[Array, "4 3"]]:
         theta = jnp.concatenate([jnp.zeros(6, dtype), jnp.log(jnp.clip(rho0, 0.05, 20.0))])
         theta = _gauss_newton(
             lambda theta: (residuals(theta, T0), jax.jacfwd(residuals)(theta, T0)),
-            theta, num_residuals=3 * unit.shape[0], steps=2, lam=1e-9,
+            theta, steps=2, lam=1e-9,
         )
         T = rplus(jaxlie.SE3(T0), theta[:6]).wxyz_xyz
         return T, jnp.concatenate([jnp.ones(1, dtype), jnp.exp(theta[6:])])
@@ -224,7 +223,7 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
         fixed = (s, jnp.sum(res**2))
         # Gauss-Newton on the odometry; a step that makes a scale non-positive is refused.
         s = _gauss_newton(
-            lambda s: _concurrent_cost_and_jac(s, P, d, w), s, num_residuals=4, steps=6,
+            lambda s: _concurrent_cost_and_jac(s, P, d, w), s, steps=6,
             lam=1e-12, retract=lambda s, step: jnp.where(jnp.all(s + step > 0), s + step, s),
         )  # fmt: skip
         res, _ = _concurrent_cost_and_jac(s, P, d, w)

@@ -8,18 +8,16 @@ placement it saw ([`jaxloc.solve_overhead_pose`][]). Every estimate passes the g
 is called `successful`.
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 
 from .._core.poses import inverse
 from .._core.results import raise_if_failed, RESULTS
-from .._cycle.estimate import CycleEstimate, CycleStarts, start_placements
+from .._cycle.estimate import CycleEstimate, CycleStarts
 from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
-from .._model.covariance import estimate_placements
-from .._model.gates import check
+from .._model.gates import gate_all, gate_point, gate_rivals, gated
 from .._model.measurements import cycle_data
 from .concurrent import concurrent_formations, runner_up_positions
 from .overhead import solve_overhead_pose
@@ -104,32 +102,14 @@ def _closed_form_result(pose_result, scale_ok, mutual_result, odometry):
     return RESULTS.where(finite, result, RESULTS.nonfinite_observation)
 
 
-def _gated(data, rig, strategy, poses: CyclePoses, solver_result, scales, starts):
-    """Apply the gates at the closed-form estimate `poses` (its other `starts`, a
-    [`jaxloc.CycleStarts`][] or `None`, as rivals)."""
-    T_place, T_over = estimate_placements(poses, strategy)
-    finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
-    ident = jnp.zeros(7, T_place.dtype).at[0].set(1.0)
-    T_place = jnp.where(finite, T_place, ident)
-    T_over = jnp.where(finite, T_over, ident)
-    final = jnp.concatenate(
-        [poses.T_world_overhead.wxyz_xyz[None], poses.T_world_body.wxyz_xyz[-1]]
-    )
-    final = jnp.where(jnp.all(jnp.isfinite(final)), final, ident)
-    rivals = None if starts is None else start_placements(starts, scales, strategy, T_place)
-    return check(
-        T_place, T_over, data, rig, strategy, solver_result, final_poses=final, rivals=rivals
-    )
-
-
-def localize_cycle_methods(
-    observations: CycleObservations, rig: Rig, methods: tuple[str, ...]
+def closed_forms(
+    observations: CycleObservations, methods: tuple[str, ...]
 ) -> list[CycleEstimate]:
-    """[`jaxloc.localize_cycle`][] for several overhead-pose methods at once.
-
-    The ground robots' chain and the scale fit are computed once and shared; only the
-    overhead camera's solve differs; the gates of all methods run as one `vmap`. Never
-    raises on traced values (`throw=False`)."""
+    """The closed forms of [`jaxloc.localize_cycle`][] for several overhead-pose methods,
+    before the gates: `result` is the solver's own status, `checks` and `covariance` are
+    not computed (see [`jaxloc.CycleEstimate.from_poses`][]). The ground robots' chain
+    and the scale fit are computed once and shared; only the overhead camera's solve
+    differs."""
     unknown = [m for m in methods if m not in METHODS]
     if unknown or not methods:
         raise ValueError(f"`method` must be one of {METHODS}; got {methods!r}.")
@@ -152,27 +132,28 @@ def localize_cycle_methods(
         stats = dict(pose_sol.stats, min_angle=min_angle, odometry_rms=odo_rms)
         result = _closed_form_result(pose_sol.result, scale_ok, mutual_result, odometry)
         poses = CyclePoses(T, inverse(pose_sol.pose))
-        estimates.append((poses, result, stats, alternatives))
-    rivals = [e[3] for e in estimates]
-    some = next((r for r in rivals if r is not None), None)
-    if some is not None:  # one structure for the vmap: rivals that do not exist
-        absent = eqx.tree_at(lambda s: s.ok, some, jnp.zeros_like(some.ok))
-        rivals = [absent if r is None else r for r in rivals]
-    stacked = jax.tree.map(
-        lambda *x: jnp.stack(x), *[(e[0], e[1], r) for e, r in zip(estimates, rivals)]
-    )
-    data = cycle_data(observations, rig)
-    gated, checks, covariance = jax.vmap(
-        lambda p, r, starts: _gated(data, rig, observations.strategy, p, r, scales, starts)
-    )(*stacked)
-    return [
-        CycleEstimate(
-            poses, scales, jax.tree.map(lambda x, i=i: x[i], gated), stats,
-            jax.tree.map(lambda x, i=i: x[i], checks),
-            jax.tree.map(lambda x, i=i: x[i], covariance), alternatives,
+        blank = CycleEstimate.from_poses(poses, scales=scales, result=result)
+        estimates.append(
+            CycleEstimate(
+                poses, scales, result, stats, blank.checks, blank.covariance, alternatives
+            )
         )
-        for i, (poses, _, stats, alternatives) in enumerate(estimates)
-    ]  # fmt: skip
+    return estimates
+
+
+def localize_cycle_methods(
+    observations: CycleObservations, rig: Rig, methods: tuple[str, ...]
+) -> list[CycleEstimate]:
+    """[`jaxloc.localize_cycle`][] for several overhead-pose methods at once: the
+    [`closed_forms`][], then the gates of all methods as one `vmap`. Never raises on
+    traced values (`throw=False`)."""
+    estimates = closed_forms(observations, methods)
+    data = cycle_data(observations, rig)
+    strategy = observations.strategy
+    points = [gate_point(e, data, strategy) for e in estimates]
+    rivals = [gate_rivals(e, p, strategy) for e, p in zip(estimates, points)]
+    gates = gate_all(points, rig, strategy, polish=True, rivals=rivals)
+    return [gated(e, g) for e, g in zip(estimates, gates)]
 
 
 def localize_cycle(

@@ -19,7 +19,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .._core.least_squares import implicit_step, levenberg_marquardt
+from .._core.least_squares import implicit_step, levenberg_marquardt, normal_equations
 from .._core.numerics import safe_normalize
 from .._core.poses import apply, inverse, rplus, rplus_params
 from .._core.results import raise_if_failed, RESULTS
@@ -87,11 +87,10 @@ def _polish(pose: jaxlie.SE3, X, b, w, steps: int) -> jaxlie.SE3:
     # Residuals are in rad (~1e-3 at 2 px), not whitened: a damping well below J^T J, and
     # the step test alone.
     out = levenberg_marquardt(
-        lambda x: _chordal_model(x, Xs, bs, ws),
+        lambda x: normal_equations(*_chordal_model(x, Xs, bs, ws)),
         rplus_params,
         lambda x: jnp.max(jnp.abs(x[4:])),
         stop(pose.wxyz_xyz),
-        num_residuals=3 * X.shape[0],
         num_unknowns=6,
         max_steps=steps,
         rtol=tol,

@@ -11,14 +11,15 @@ from .._core.linalg import adjugate3, psd_cholesky3
 from .._core.numerics import safe_norm
 from .._core.poses import compose, inverse, rotation_error, ypr_from_rotation
 from .._core.results import RESULTS, status_code
-from .._cycle.estimate import CycleEstimate
 from .._cycle.observations import CyclePoses
 from .._cycle.rig import Rig
-from .._model.covariance import covariance_at, crlb_inputs
-from .._refine.cycle import refine_cycle
+from .._model.covariance import crlb_inputs
+from .._model.gates import end_poses, gate_all, gate_point, gate_rivals, gated, GatePoint
+from .._model.measurements import cycle_data
+from .._refine.cycle import finish_refinement, refine_solution
 from .._sim.scenario import Scenario
 from .._sim.simulate import simulate_cycle
-from .._solvers.localize import localize_cycle_methods
+from .._solvers.localize import closed_forms
 
 
 METHODS = ("paper", "robust", "refined")
@@ -120,18 +121,45 @@ def score(estimate: CyclePoses, truth: CyclePoses, rig: Rig):
 
 
 def estimate_all(
-    observations, rig: Rig, methods: tuple[str, ...] = METHODS
-) -> list[CycleEstimate]:
-    """Run every requested estimator on the same observations (shared ground chain)."""
-    closed = tuple(m for m in methods if m != "refined")
-    if "refined" in methods and "robust" not in closed:
-        closed = closed + ("robust",)
-    estimates = dict(zip(closed, localize_cycle_methods(observations, rig, closed)))
+    observations, rig: Rig, methods: tuple[str, ...] = METHODS, *, truth=None,
+    odometry_sigma_rel=None,
+):  # fmt: skip
+    """Every requested estimator on the same observations (shared ground chain), gated
+    together: the closed forms, the refinement started from the robust closed form, and
+    (with `truth`) the Cramér–Rao bound at the true poses, in one `vmap` of the gates
+    (one traced copy of the gates and of the covariance per kind: polished for the
+    closed forms, at the point for the converged refinement and the true poses).
+
+    **Returns:** `(estimates, bound)`: the estimates in the order of `methods`, and the
+    bound's [`jaxloc.CycleCovariance`][] (`None` without `truth`)."""
+    strategy = observations.strategy
+    closed_methods = tuple(m for m in methods if m != "refined")
+    if "refined" in methods and "robust" not in closed_methods:
+        closed_methods = closed_methods + ("robust",)
+    estimates = dict(zip(closed_methods, closed_forms(observations, closed_methods)))
+    runner_up = None
     if "refined" in methods:
-        estimates["refined"] = refine_cycle(
-            observations, rig, estimates["robust"], max_steps=REFINE_MAX_STEPS, throw=False
-        )
-    return [estimates[m] for m in methods]
+        estimates["refined"], runner_up = refine_solution(
+            observations, rig, estimates["robust"], solver="lm", max_steps=REFINE_MAX_STEPS,
+            rtol=1e-6, atol=1e-6,
+        )  # fmt: skip
+    data = cycle_data(observations, rig)
+    closed = [m for m in estimates if m != "refined"]
+    points = [gate_point(estimates[m], data, strategy) for m in closed]
+    rivals = [gate_rivals(estimates[m], p, strategy) for m, p in zip(closed, points)]
+    for name, gate in zip(closed, gate_all(points, rig, strategy, polish=True, rivals=rivals)):
+        estimates[name] = gated(estimates[name], gate)
+    # A converged refinement and the true poses are gated where they are.
+    points = [gate_point(estimates["refined"], data, strategy)] if runner_up is not None else []
+    if truth is not None:
+        T_place, T_over, bound_data = crlb_inputs(rig, truth, odometry_sigma_rel, strategy)
+        final = end_poses(T_place, T_over, strategy)
+        points.append(GatePoint(T_place, T_over, final, bound_data, RESULTS.successful))
+    gates = gate_all(points, rig, strategy, polish=False) if points else []
+    if runner_up is not None:
+        estimates["refined"] = finish_refinement(estimates["refined"], runner_up, gates[0])
+    bound = gates[-1][2] if truth is not None else None
+    return [estimates[m] for m in methods], bound
 
 
 def _nees(error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]) -> Float[Array, "4"]:
@@ -164,10 +192,14 @@ def run_trial(
     but meaningless: statistics must skip them (see [`jaxloc.summarize`][]).
     """
     truth, observations, all_visible = simulate_cycle(scenario, key)
-    rig, strategy = scenario.rig, observations.strategy
+    rig = scenario.rig
     fields = []
     refined_error = refined_covariance = None
-    for method, estimate in zip(methods, estimate_all(observations, rig, methods)):
+    estimates, bound = estimate_all(
+        observations, rig, methods, truth=truth.poses,
+        odometry_sigma_rel=scenario.odometry_sigma_rel,
+    )  # fmt: skip
+    for method, estimate in zip(methods, estimates):
         solver = estimate.result if method == "refined" else estimate.checks.solver_result
         status = RESULTS.where(all_visible, solver, RESULTS.not_visible)
         gated = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
@@ -176,9 +208,6 @@ def run_trial(
         if method == "refined":
             refined_error, refined_covariance = diff, estimate.covariance
     stacked = [jnp.stack(f) for f in zip(*fields)]
-    bound = covariance_at(
-        *crlb_inputs(rig, truth.poses, scenario.odometry_sigma_rel, strategy), rig, strategy
-    )
     crlb_pos = jnp.trace(bound.position, axis1=-2, axis2=-1)
     crlb_rot = jnp.trace(bound.rotation, axis1=-2, axis2=-1)
     if refined_error is None:
