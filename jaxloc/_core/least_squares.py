@@ -92,6 +92,7 @@ def levenberg_marquardt(
     lam0: float = 1e-2,
     decrease_tol: float | None = None,
     final_gauss_newton: bool = False,
+    gram_fn: Callable[[Array], Array] = gram,
 ) -> LMResult:
     r"""Levenberg--Marquardt re-linearized at the current iterate every step.
 
@@ -125,6 +126,9 @@ def levenberg_marquardt(
       hundreds of iterations. `None`: the step test only.
     - `final_gauss_newton`: after convergence, one more Gauss--Newton step from the
       Jacobian at hand (no model evaluation) takes the remaining error to rounding.
+    - `gram_fn`: how `J^T J` is formed: [`gram`][] (element-wise, best for a few dozen
+      unknowns or fewer) or `jaxloc._core.linalg.gram_dot` (one `dot`, for larger problems
+      such as the tracking smoother's window).
 
     One model evaluation per iteration, at the top of the loop body, so the model and its
     Jacobian are traced and compiled once: iteration 0 evaluates the start, iteration
@@ -138,7 +142,7 @@ def levenberg_marquardt(
     lam0 = jnp.array(lam0, dtype)
 
     def propose(x, r, J, lam):
-        H, g = gram(J), jnp.sum(J * r[:, None], axis=0)
+        H, g = gram_fn(J), jnp.sum(J * r[:, None], axis=0)
         delta, finite = solve_spd(H + lam * eye, -g)
         small = jnp.max(jnp.abs(delta)) <= atol + rtol * scale(x)
         if decrease_tol is not None:
@@ -181,7 +185,7 @@ def levenberg_marquardt(
     out = jax.lax.while_loop(cond, body, init)
     x = out.x
     if final_gauss_newton:
-        H, g = gram(out.J), jnp.sum(out.J * out.r[:, None], axis=0)
+        H, g = gram_fn(out.J), jnp.sum(out.J * out.r[:, None], axis=0)
         delta, ok = solve_spd(H, -g)
         polished = retract(x, delta)
         x = jax.tree.map(lambda a, b: jnp.where(ok & out.converged, a, b), polished, x)

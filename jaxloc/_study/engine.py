@@ -243,7 +243,7 @@ def _study_chunks(
         manifest = study_manifest(scenario_to_dict(scenario), seed, chunk_size, methods)
         open_study(out_dir, manifest)
     expected = None
-    bar = _progress(progress, n_trials)
+    bar = ProgressBar(progress, n_trials)
     done = 0
     t0 = time.perf_counter()
     for c in range(-(-n_trials // chunk_size)):
@@ -340,7 +340,7 @@ def stream_study(
     return summary.result()
 
 
-class _progress:
+class ProgressBar:
     """A rich progress bar showing trials and trials/s (or nothing if disabled)."""
 
     def __new__(cls, enabled: bool, total: int):

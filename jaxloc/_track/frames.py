@@ -95,3 +95,63 @@ def pose_covariances(
     """World position (m^2) and rotation (rad^2) covariances of four poses."""
     pos = jax.vmap(position_covariance)(poses, cov)
     return pos, jax.vmap(rotation_covariance)(cov)
+
+
+# --------------------------------------------------------------------------------------
+# Rotation matrices without quaternions: the one-step update's latency-critical path
+# (jaxlie's `SO3.from_matrix` computes four candidate quaternions and selects one; its
+# `log` and `exp` go through quaternions; each costs several fused kernels per call).
+
+
+def so3_exp(w: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """`exp([w]x)` by Rodrigues' formula (Taylor terms below 1e-4 rad)."""
+    t2 = jnp.sum(w * w)
+    small = t2 < 1e-8
+    t = jnp.sqrt(jnp.where(small, 1.0, t2))
+    a = jnp.where(small, 1.0 - t2 / 6.0, jnp.sin(t) / t)
+    b = jnp.where(small, 0.5 - t2 / 24.0, (1.0 - jnp.cos(t)) / jnp.where(small, 1.0, t2))
+    K = _skew(w)
+    return jnp.eye(3, dtype=w.dtype) + a * K + b * (K @ K)
+
+
+def so3_log(R: Float[Array, "3 3"]) -> Float[Array, "3"]:
+    """`w` with `exp([w]x) = R`, `|w|` in `[0, pi]`: the angle from `atan2` of the
+    antisymmetric part's norm and the trace (accurate everywhere); the axis from the
+    antisymmetric part, or near pi (where it vanishes) from the largest column of the
+    symmetric part `(R + R^T)/2 - cos(t) I = (1 - cos t) a a^T`, signed by the former."""
+    dtype = R.dtype
+    v = 0.5 * jnp.stack([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    s = jnp.sqrt(jnp.sum(v * v))
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    t = jnp.arctan2(s, c)
+    small = s < 1e-6
+    near_pi = c < 0.0
+    # Away from pi: w = t v / sin t (-> v for small angles).
+    w_main = jnp.where(small & ~near_pi, 1.0 + s * s / 6.0, t / jnp.where(small, 1.0, s)) * v
+    B = 0.5 * (R + R.T) - c * jnp.eye(3, dtype=dtype)
+    i = jnp.argmax(jnp.diagonal(B))
+    col = B[:, i]
+    a = col / jnp.sqrt(jnp.maximum(jnp.sum(col * col), jnp.finfo(dtype).tiny))
+    a = jnp.where(jnp.sum(a * v) < 0, -a, a)
+    return jnp.where(near_pi, t * a, w_main)
+
+
+def so3_jr_inv(phi: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """Inverse right Jacobian of SO(3): `d log(exp([phi]x) exp([d]x)) / d d` at `d = 0`,
+    `I + [phi]x / 2 + (1/t^2 - (1 + cos t) / (2 t sin t)) [phi]x^2`."""
+    t2 = jnp.sum(phi * phi)
+    small = t2 < 1e-8
+    t = jnp.sqrt(jnp.where(small, 1.0, t2))
+    coef = jnp.where(
+        small, 1.0 / 12.0 + t2 / 720.0,
+        1.0 / jnp.where(small, 1.0, t2) - (1.0 + jnp.cos(t)) / (2.0 * t * jnp.sin(t)),
+    )  # fmt: skip
+    K = _skew(phi)
+    return jnp.eye(3, dtype=phi.dtype) + 0.5 * K + coef * (K @ K)
+
+
+def _skew(a):
+    z = jnp.zeros((), a.dtype)
+    return jnp.stack([
+        jnp.stack([z, -a[2], a[1]]), jnp.stack([a[2], z, -a[0]]), jnp.stack([-a[1], a[0], z])
+    ])  # fmt: skip

@@ -55,14 +55,12 @@ from .._model.gates import chi2_limit, MAX_RELATIVE_POSITION_BOUND, MAX_ROTATION
 from .._model.measurements import CycleData, pixel_weights, rotations, whitened_with_jacobian
 from .._solvers.mutual import mutual_localization
 from .._solvers.p3p import p3p
-from .frames import adjoint, body_of_overhead, overhead_of_body
+from .frames import adjoint, body_of_overhead, overhead_of_body, so3_exp, so3_jr_inv, so3_log
 
 
 #: Two P3P roots whose prior misfits (chi-square units) differ by less than this make the
 #: estimate `ambiguous` (a likelihood ratio below e^2 ~ 7, as `jaxloc.refine_cycle`'s).
 AMBIGUITY_MARGIN = 4.0
-#: Gauss--Newton steps of the one-step refinement (see `_one_step_impl`).
-ONE_STEP_GN_STEPS = 3
 #: Number of prior residuals: pose (6), height (1), tilt (2), scale (1).
 _PRIOR_ROWS = 10
 
@@ -225,48 +223,50 @@ def _perimeter(p: Float[Array, "3 3"]) -> Float[Array, ""]:
 
 def prior_residuals(
     prior: OneStepPrior,
-    T_body: Float[Array, "7"],
+    R_body: Float[Array, "3 3"],
+    p_body: Float[Array, "3"],
     positions: Float[Array, "3 3"],
     markers: Float[Array, "3 3"],
     up: Float[Array, "3"],
     mount: Float[Array, "7"],
 ) -> Float[Array, " 10"]:
-    """The whitened prior residuals `(10,)`: pose (6), height (1), tilt (2), perimeter
-    (1), for the climbing robot at `T_body` and the ground robots' body origins
-    `positions` and markers `markers` (W)."""
-    dtype = T_body.dtype
-    r_pose = prior.pose_sqrt_information @ jaxlie.manifold.rminus(
-        jaxlie.SE3(prior.pose), jaxlie.SE3(T_body)
-    ).astype(dtype)
+    """The whitened prior residuals `(10,)` of the climbing robot's body at `(R_body,
+    p_body)` and the ground robots' body origins `positions` and markers `markers` (W):
+    pose (6: `S (R_p^T (p - p_p), log(R_p^T R))`, the prior's translation and rotation
+    errors in its own frame, which to first order is jaxlie's right perturbation), height
+    (1), tilt (2), perimeter (1)."""
+    dtype = R_body.dtype
+    R_p = rotations(prior.pose)
+    xi = jnp.concatenate([R_p.T @ (p_body - prior.pose[4:]), so3_log(R_p.T @ R_body)])
+    r_pose = prior.pose_sqrt_information @ xi
     n = plane_normal(markers, up)
-    centre = overhead_of_body(T_body, mount)[4:]
+    R_m, t_m = rotations(mount.astype(dtype)), mount[4:].astype(dtype)
+    centre = p_body + R_body @ t_m
     r_height = prior.height_weight * (jnp.sum(n * (centre - markers[0])) - prior.height)
-    R = jaxlie.SO3(T_body[:4]).as_matrix().astype(dtype)
-    r_tilt = prior.tilt_weight * jnp.sum(R[:, :2] * n[:, None], axis=0)  # (R^T n)_xy
+    r_tilt = prior.tilt_weight * (n @ R_body)[:2]  # (R^T n)_xy
+    del R_m
     r_scale = prior.perimeter_weight * (_perimeter(positions) - prior.perimeter)
     return jnp.concatenate([r_pose, r_height[None], r_tilt, r_scale[None]])
 
 
-def _root_costs(prior: OneStepPrior, R_wb, c_unit, u, up, mount, dtype):
+def _root_costs(prior: OneStepPrior, R_wb, c_unit, u, up, t_m, dtype):
     """Each root's best scale and prior misfit (first order, closed form in the scale)."""
-    t_m = mount[4:].astype(dtype)
     n = plane_normal(u, up)
     p_prior = prior.pose[4:]
-    R_prior = jaxlie.SO3(prior.pose[:4]).as_matrix().astype(dtype)
+    R_prior = rotations(prior.pose)
     S = prior.pose_sqrt_information
     P_unit = _perimeter(u)
 
     def one(R, c):
         # Body position p(d) = d c - R t_m; camera centre d c.
-        off = -R @ t_m
-        v_a = R_prior.T @ (off - p_prior)
+        v_a = R_prior.T @ (-R @ t_m - p_prior)
         v_b = R_prior.T @ c
-        w = jaxlie.SO3.from_matrix(R_prior.T @ R).log().astype(dtype)
+        w = so3_log(R_prior.T @ R)
         pose_a = S @ jnp.concatenate([v_a, w])
-        pose_b = S @ jnp.concatenate([v_b, jnp.zeros(3, dtype)])
+        pose_b = S[:, :3] @ v_b
         h_a = -prior.height_weight * prior.height
         h_b = prior.height_weight * jnp.sum(n * c)
-        tilt = prior.tilt_weight * (R.T @ n)[:2]
+        tilt = prior.tilt_weight * (n @ R)[:2]
         s_a, s_b = -prior.perimeter_weight * prior.perimeter, prior.perimeter_weight * P_unit
         a = jnp.concatenate([pose_a, h_a[None], tilt, s_a[None]])
         b = jnp.concatenate([pose_b, h_b[None], jnp.zeros(2, dtype), s_b[None]])
@@ -280,67 +280,77 @@ def _root_costs(prior: OneStepPrior, R_wb, c_unit, u, up, mount, dtype):
     return jax.vmap(one)(R_wb, c_unit)
 
 
-def _pixel_model(T_body, d, u, R_robots, markers_body, pixels, weight, rig: Rig):
-    """Whitened overhead pixel residuals `(6,)` and their Jacobian `(6, 7)` w.r.t. the
-    body's right perturbation and the scale."""
-    dtype = T_body.dtype
-    mount = rig.mounts[0].astype(dtype)
-    O = overhead_of_body(T_body, mount)
-    R_O = rotations(O)
-    X = d * u + matvec(R_robots, markers_body)  # markers in W
-    x_cam = in_body(R_O, O[4:], X)  # (3, 3)
-    uv, Jp = rig.overhead.project_with_jacobian(x_cam)
-    r = weight[:, None] * (uv - pixels)
-    D_pose = matmul(camera_pose_jacobian(x_cam), adjoint(inverse(jaxlie.SE3(mount)).wxyz_xyz)[None])
-    D_scale = matvec(jnp.swapaxes(R_O, -1, -2)[None], u)  # d x_cam / d d = R_O^T u
-    D = jnp.concatenate([D_pose, D_scale[..., None]], axis=-1)  # (3, 3, 7)
-    J = weight[:, None, None] * matmul(Jp, D)
-    return r.reshape(-1), J.reshape(-1, 7)
+class _Problem(eqx.Module):
+    """The one-step refinement's fixed inputs (matrix form, no quaternions)."""
+
+    u: Float[Array, "3 3"]  # robots' body origins, circumdiameter 1
+    markers: Float[Array, "3 3"]  # R_r m_r: the markers' offsets in W
+    up: Float[Array, "3"]
+    pixels: Float[Array, "3 2"]
+    weight: Float[Array, " 3"]
+    R_m: Float[Array, "3 3"]
+    t_m: Float[Array, "3"]
+    Ad_m: Float[Array, "6 6"]  # Ad(M^-1): body perturbation -> camera perturbation
+    R_p: Float[Array, "3 3"]  # the pose prior's mean
+    p_p: Float[Array, "3"]
 
 
-def _prior_model(prior: OneStepPrior, T_body, d, u, R_robots, markers_body, up, mount):
-    """The whitened prior residuals `(10,)` ([`prior_residuals`][]) and their Jacobian
-    `(10, 7)` w.r.t. the body's right perturbation and the scale, in closed form (the
-    plane's normal held at its current value: it does not depend on the scale when the
-    markers are at the body origins)."""
-    dtype = T_body.dtype
-    X = d * u + matvec(R_robots, markers_body)
-    r = prior_residuals(prior, T_body, d * u, X, up, mount)
-    rel = compose(inverse(jaxlie.SE3(prior.pose)), jaxlie.SE3(T_body))
-    J_pose = prior.pose_sqrt_information @ rel.jlog().astype(dtype)  # (6, 6)
-    R = rotations(T_body)
-    n = plane_normal(X, up)
+def _model(x, prior: OneStepPrior, pb: _Problem, camera):
+    """Whitened residuals `(16,)` (overhead pixels, priors) at `x = (R_body, p_body, d)` and
+    their Jacobian `(16, 7)` w.r.t. the retraction of [`_retract`][], in closed form."""
+    R, p, d = x
+    dtype = R.dtype
+    R_O, p_O = R @ pb.R_m, p + R @ pb.t_m
+    X = d * pb.u + pb.markers
+    x_cam = in_body(R_O, p_O, X)
+    uv, Jp = camera.project_with_jacobian(x_cam)
+    r_px = pb.weight[:, None] * (uv - pb.pixels)
+    D_pose = matmul(camera_pose_jacobian(x_cam), pb.Ad_m[None])
+    D = jnp.concatenate([D_pose, (pb.u @ R_O)[..., None]], axis=-1)  # d/dd: R_O^T u
+    J_px = pb.weight[:, None, None] * matmul(Jp, D)
+    # Priors.
+    Rp_R = pb.R_p.T @ R
+    phi = so3_log(Rp_R)
+    S = prior.pose_sqrt_information
+    r_pose = S @ jnp.concatenate([pb.R_p.T @ (p - pb.p_p), phi])
+    J_pose = jnp.concatenate([S[:, :3] @ Rp_R, S[:, 3:] @ so3_jr_inv(phi)], axis=1)
+    n = plane_normal(X, pb.up)
     nR = n @ R
-    t_m = mount[4:].astype(dtype)
-    J_height = prior.height_weight * jnp.concatenate([nR, -nR @ skew(t_m)])
-    a = R.T @ n
-    J_tilt = prior.tilt_weight * jnp.concatenate([jnp.zeros((2, 3), dtype), skew(a)[:2]], 1)
-    z6 = jnp.zeros(6, dtype)
+    r_height = prior.height_weight * (jnp.sum(n * (p_O - X[0])) - prior.height)
+    J_height = prior.height_weight * jnp.concatenate([nR, -nR @ skew(pb.t_m)])
+    r_tilt = prior.tilt_weight * nR[:2]
+    J_tilt = prior.tilt_weight * jnp.concatenate([jnp.zeros((2, 3), dtype), skew(nR)[:2]], 1)
+    P_unit = _perimeter(pb.u)
+    r_scale = prior.perimeter_weight * (d * P_unit - prior.perimeter)
+    z1 = jnp.zeros((1,), dtype)
+    r = jnp.concatenate([r_px.reshape(-1), r_pose, r_height[None], r_tilt, r_scale[None]])
     J = jnp.concatenate([
+        J_px.reshape(-1, 7),
         jnp.concatenate([J_pose, jnp.zeros((6, 1), dtype)], 1),
-        jnp.concatenate([J_height, jnp.zeros(1, dtype)])[None],
+        jnp.concatenate([J_height, z1])[None],
         jnp.concatenate([J_tilt, jnp.zeros((2, 1), dtype)], 1),
-        jnp.concatenate([z6, (prior.perimeter_weight * _perimeter(u))[None]])[None],
+        jnp.concatenate([jnp.zeros(6, dtype), prior.perimeter_weight * P_unit[None]])[None],
     ])  # fmt: skip
     return r, J
 
 
 def _retract(x, delta):
-    T, d = x
-    return rplus(jaxlie.SE3(T), delta[:6]).wxyz_xyz, d + delta[6]
+    """`(R exp(omega), p + R v, d + delta_d)`: to first order jaxlie's right perturbation."""
+    R, p, d = x
+    return R @ so3_exp(delta[3:6]), p + R @ delta[:3], d + delta[6]
 
 
 @eqx.filter_jit
 def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     dtype = snapshot.overhead.dtype
     mount = rig.mounts[0].astype(dtype)
+    R_m, t_m = rotations(mount), mount[4:]
     # 1. The formation up to scale (circumdiameter 1), C1's body frame.
     mutual = mutual_localization(snapshot.mutual, 0, throw=False)
     T_ref = mutual.T_ref_body.wxyz_xyz
     u = T_ref[:, 4:]
     R_robots = rotations(T_ref)
     up = safe_normalize(jnp.sum(R_robots[:, :, 2], axis=0))
-    markers_body = rig.markers[1:].astype(dtype)
     # 2. P3P on the overhead bearings (unit scale).
     vis = snapshot.overhead_visible
     finite = jnp.all(jnp.isfinite(snapshot.overhead), axis=-1)
@@ -351,55 +361,50 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     Tcw = sol.poses.wxyz_xyz
     R_cw = rotations(Tcw)
     c_unit = -jnp.sum(R_cw * Tcw[:, 4:, None], axis=-2)  # -R^T t
-    R_m = rotations(mount)
     R_wb = jnp.einsum("kji,lj->kil", R_cw, R_m)  # R_cw^T R_m^T
-    d_root, cost, scaled = _root_costs(prior, R_wb, c_unit, u, up, mount, dtype)
+    d_root, cost, scaled = _root_costs(prior, R_wb, c_unit, u, up, t_m, dtype)
     valid = sol.valid & scaled
     cost = jnp.where(valid, cost, jnp.inf)
     chosen = jnp.argmin(cost)
     best = cost[chosen]
     second = jnp.min(jnp.where(jnp.arange(4) == chosen, jnp.inf, cost))
     ambiguous = second - best < AMBIGUITY_MARGIN
-    roots = jax.vmap(
-        lambda R, c, d: jnp.concatenate([
-            jaxlie.SO3.from_matrix(R).wxyz.astype(dtype), d * c - R @ mount[4:]
-        ])
-    )(R_wb, c_unit, d_root)  # fmt: skip
-    roots = jnp.where(valid[:, None], roots, identity_params(dtype)[None])
+    p_roots = d_root[:, None] * c_unit - jnp.einsum("kij,j->ki", R_wb, t_m)
     # 3. Refinement of the chosen root: pose and scale, pixels and priors.
-    pixels = jnp.where(usable[:, None], snapshot.overhead_pixels, 0.0)
     pixel_ok = jnp.all(jnp.isfinite(snapshot.overhead_pixels), axis=-1)
-    derived = rig.overhead.project(jnp.where(usable[:, None], b, jnp.array([0.0, 0.0, 1.0], dtype)))
-    pixels = jnp.where(pixel_ok[:, None], pixels, derived)
-    weight = jnp.where(usable, pixel_weights(rig, dtype)[0], 0.0)
-
-    def model(x):
-        T, d = x
-        r_px, J_px = _pixel_model(T, d, u, R_robots, markers_body, pixels, weight, rig)
-        r_pr, J_pr = _prior_model(prior, T, d, u, R_robots, markers_body, up, mount)
-        return jnp.concatenate([r_px, r_pr]), jnp.concatenate([J_px, J_pr])
-
+    derived = rig.overhead.project(b)
+    pixels = jnp.where(usable[:, None], jnp.where(pixel_ok[:, None], snapshot.overhead_pixels,
+                                                  derived), 0.0)  # fmt: skip
+    pb = _Problem(
+        u, matvec(R_robots, rig.markers[1:].astype(dtype)), up, pixels,
+        jnp.where(usable, pixel_weights(rig, dtype)[0], 0.0), R_m, t_m,
+        adjoint(inverse(jaxlie.SE3(mount)).wxyz_xyz), rotations(prior.pose), prior.pose[4:],
+    )  # fmt: skip
     count = jnp.sum(usable)
     start_ok = jnp.isfinite(best) & (count == 3) & ~nonfinite
-    x0 = (roots[chosen], d_root[chosen])
-    x0 = (jnp.where(start_ok, x0[0], identity_params(dtype)), jnp.where(start_ok, x0[1], 1.0))
-    # Gauss--Newton from the root (it fits the bearings exactly and its scale already
-    # minimizes the linearized prior misfit). Along the weakly observed combination of a
-    # sideways shift and a tilt of the camera, the prior pulls and the pixels are curved:
-    # Gauss--Newton converges linearly there, about tenfold per step (0.06, 0.006,
-    # 0.0005 m on a typical problem), so a fixed ONE_STEP_GN_STEPS steps are taken. The
-    # gates' `chi2_min` is the misfit at the optimum of the model linearized at the last
-    # step (as `jaxloc._model.gates.check`), and the covariance is taken there.
+    eye = jnp.eye(3, dtype=dtype)
+    x0 = (jnp.where(start_ok, R_wb[chosen], eye), jnp.where(start_ok, p_roots[chosen], 0.0),
+          jnp.where(start_ok, d_root[chosen], 1.0))  # fmt: skip
+    # Two Gauss--Newton steps from the root (it fits the bearings exactly and its scale
+    # already minimizes the linearized prior misfit). Along the weakly observed combination
+    # of a sideways shift and a tilt of the camera, the prior pulls and the pixels are
+    # curved: Gauss--Newton converges linearly there, about tenfold per step (0.06, 0.006,
+    # 0.0005 m on a typical problem), and two steps leave ~1/20 of the error's spread. The
+    # kernel takes the first step (every step counts as converged: `atol = inf`) and its
+    # final Gauss--Newton step the second, from the Jacobian at hand: two model
+    # evaluations. The gates' `chi2_min` is the misfit at that second step's linearized
+    # optimum (as `jaxloc._model.gates.check`); the covariance is the one at the first.
+    camera = rig.overhead
     out = levenberg_marquardt(
-        model, _retract, lambda x: jnp.max(jnp.abs(x[0][4:])), x0,
-        num_residuals=6 + _PRIOR_ROWS, num_unknowns=7, max_steps=ONE_STEP_GN_STEPS,
-        rtol=0.0, atol=0.0, active=start_ok, damped=False, lam0=0.0,
+        lambda x: _model(x, prior, pb, camera), _retract, lambda x: jnp.max(jnp.abs(x[1])),
+        x0, num_residuals=6 + _PRIOR_ROWS, num_unknowns=7, max_steps=1, rtol=0.0,
+        atol=jnp.inf, active=start_ok, damped=False, lam0=0.0, final_gauss_newton=True,
     )  # fmt: skip
     r, J = out.r, out.J
     cov, cov_ok = unrolled_spd_inverse(gram(J))
     g = jnp.sum(J * r[:, None], axis=0)
     step = jnp.where(cov_ok & start_ok, -cov @ g, 0.0)
-    T, d = out.x
+    R_b, p_b, d = out.x
     converged = cov_ok & start_ok
     # 4. Gates.
     prior_rows = (
@@ -409,7 +414,6 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     dof = (2 * count + prior_rows - 7).astype(jnp.int32)
     chi2 = jnp.maximum(jnp.sum(r * r) + jnp.sum(g * step), 0.0)
     limit = chi2_limit(dof, count, prior_rows, rig.noise_model, dtype)
-    R_b = rotations(T)
     pos_var = jnp.trace(R_b @ cov[:3, :3] @ R_b.T)
     rot_var = jnp.trace(cov[3:6, 3:6])
     size = jnp.sqrt(jnp.mean(jnp.sum((u - jnp.mean(u, 0)) ** 2, -1))) * d
@@ -427,11 +431,19 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     result = RESULTS.where((result == RESULTS.successful) & ~(chi2 <= limit),
                            RESULTS.inconsistent_fit, result)  # fmt: skip
     result = RESULTS.where((result == RESULTS.successful) & ambiguous, RESULTS.ambiguous, result)
-    T_body = jnp.stack([jnp.concatenate([q[:4], d * q[4:]]) for q in T_ref])
+    # Outputs as poses (one batched matrix -> quaternion conversion).
+    quats = jax.vmap(lambda R: jaxlie.SO3.from_matrix(R).wxyz)(
+        jnp.concatenate([R_b[None], R_wb])
+    ).astype(dtype)
+    T_climber = jnp.concatenate([quats[0], p_b])
+    roots = jnp.concatenate([quats[1:], p_roots], axis=1)
+    roots = jnp.where(valid[:, None], roots, identity_params(dtype)[None])
+    T_body = jnp.concatenate([T_ref[:, :4], d * u], axis=1)
     checks = FitCheck(solver, jnp.sum(r * r), chi2, dof, limit, observable)
     return OneStepEstimate(
-        T, overhead_of_body(T, mount), T_body, d, result, jnp.where(cov_ok, cov, 0.0), roots,
-        valid, cost, chosen.astype(jnp.int32), checks, out.num_steps,
+        T_climber, overhead_of_body(T_climber, mount), T_body, d, result,
+        jnp.where(cov_ok, cov, 0.0), roots, valid, cost, chosen.astype(jnp.int32), checks,
+        out.num_steps + 1,
     )  # fmt: skip
 
 
@@ -515,7 +527,8 @@ def one_step_bound(
         B = rplus(jaxlie.SE3(T_b), d[2]).wxyz_xyz
         all3 = jnp.stack([poses[0], P2, P3])
         X = all3[:, 4:] + matvec(rotations(all3), markers_body)
-        return prior_residuals(prior, B, all3[:, 4:], X, safe_normalize(up), mount)
+        return prior_residuals(prior, rotations(B), B[4:], all3[:, 4:], X, safe_normalize(up),
+                               mount)  # fmt: skip
 
     J_p = jax.jacfwd(priors)(jnp.zeros(18, dtype))
     info = gram(jnp.concatenate([J, J_p]))

@@ -45,7 +45,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.least_squares import levenberg_marquardt
-from .._core.linalg import cholesky, gram, lower_inverse, spd_inverse
+from .._core.linalg import cholesky, gram_dot, lower_inverse, spd_inverse
 from .._core.poses import compose, identity_params, inverse, rplus, rplus_params
 from .._core.results import RESULTS, status_code
 from .._cycle.estimate import FitCheck
@@ -306,7 +306,7 @@ def marginalize(layout: WindowLayout, state: SmootherState, rig: Rig) -> Smoothe
     rows = np.concatenate([layout.rows("cycle", 0), layout.rows("odometry", 0),
                            layout.rows("prior")])  # fmt: skip
     Jd, rd = J[rows], r[rows]
-    H, g = gram(Jd), jnp.sum(Jd * rd[:, None], axis=0)
+    H, g = gram_dot(Jd), rd @ Jd
     mask = jnp.repeat(pinned(layout, state), 6)
     keep, elim = layout.columns(layout.keep), layout.columns(layout.eliminate)
     Hp, bp, ok = _schur(H, g, keep, elim, mask)
@@ -396,7 +396,7 @@ def insert(
 def information(layout: WindowLayout, state: SmootherState, J) -> Float[Array, "N N"]:
     """`J^T J` of the window, with an identity block for every pinned pose."""
     mask = jnp.repeat(pinned(layout, state), 6).astype(J.dtype)
-    return gram(J) + jnp.diag(mask)
+    return gram_dot(J) + jnp.diag(mask)
 
 
 def newest_end(layout: WindowLayout, state: SmootherState, s, covariance, rig: Rig):
@@ -462,8 +462,11 @@ def solve_window(
         max_steps=max_steps,
         rtol=rtol,
         atol=atol,
-        lam0=1e-2,
+        # Below the kernel's 1e-3: a step rejected at the start (a converged start, whose
+        # cost only rounding changes) then counts as the minimum within rounding.
+        lam0=1e-4,
         decrease_tol=NEGLIGIBLE_DECREASE * (min(rtol, atol) / 1e-6) ** 2,
+        gram_fn=gram_dot,
     )
     state = eqx.tree_at(lambda t: t.poses, state, out.x)
     return state, out.r, out.J, out.num_steps, out.converged
