@@ -227,7 +227,8 @@ def _draw_moves(scenario: Scenario, key, xy0, R_over, p_over, dtype):
             best = jnp.argmax(mask[1:])
         else:  # formation keeping: the feasible candidate nearest the formation's sides
             sides = jnp.sort(xy_sides(cands), axis=-1)
-            change = jnp.sum((sides - jnp.sort(scenario.formation_sides.astype(dtype))) ** 2, -1)
+            keep = jnp.sort(scenario.formation_sides.astype(dtype))[None]
+            change = jnp.sum((sides - keep) ** 2, -1)
             best = jnp.argmin(jnp.where(mask[1:], change, jnp.inf))
         xy = cands[best]
         feasible = feasible & mask[1 + best] & (mask[0] | ~first)

@@ -416,7 +416,7 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     limit = chi2_limit(dof, count, prior_rows, rig.noise_model, dtype)
     pos_var = jnp.trace(R_b @ cov[:3, :3] @ R_b.T)
     rot_var = jnp.trace(cov[3:6, 3:6])
-    size = jnp.sqrt(jnp.mean(jnp.sum((u - jnp.mean(u, 0)) ** 2, -1))) * d
+    size = jnp.sqrt(jnp.mean(jnp.sum((u - jnp.mean(u, 0, keepdims=True)) ** 2, -1))) * d
     observable = (cov_ok & (pos_var <= (MAX_RELATIVE_POSITION_BOUND * size) ** 2)
                   & (rot_var <= MAX_ROTATION_BOUND**2) & (dof > 0))  # fmt: skip
     solver = RESULTS.where(converged | ~start_ok, RESULTS.successful, RESULTS.unobservable)
