@@ -5,7 +5,17 @@ Solvers and statistics are meant to run in float64: turn on JAX's 64-bit mode be
 creating any array, `jax.config.update("jax_enable_x64", True)` (the `jaxloc` command
 does). Without it, JAX's default float is float32 and so is everything jaxloc builds
 (scenarios, rigs, studies); float32 inputs stay float32 either way.
+
+One exception, for the CPU backend only: with jaxlib 0.10.2 or 0.11.0, importing jaxloc
+before JAX's backend starts adds `--xla_cpu_experimental_ynn_fusion_type=` to `XLA_FLAGS`
+(unless `XLA_FLAGS` already sets it), turning off XLA:CPU's YNN fusions, which crash those
+releases at random on x86-64 (jax-ml/jax#39257, #40412).
 """
+
+from ._core.xla_workaround import avoid_ynn_crash as _avoid_ynn_crash
+
+
+_avoid_ynn_crash()
 
 from ._cameras.files import (
     camera_from_dict as camera_from_dict,
@@ -102,6 +112,7 @@ from ._model.covariance import (
 )
 from ._refine.cycle import refine_cycle as refine_cycle
 from ._refine.pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
+from ._sim.defects import corrupt_observations as corrupt_observations, DEFECTS as DEFECTS
 from ._sim.scenario import astype as astype, Scenario as Scenario
 from ._sim.scenario_file import (
     load_scenario as load_scenario,
@@ -133,6 +144,10 @@ from ._solvers.mutual import (
 from ._solvers.overhead import solve_overhead_pose as solve_overhead_pose
 from ._solvers.p3p import p3p as p3p, P3PSolution as P3PSolution
 from ._solvers.pose_problem import PoseSolution as PoseSolution
+from ._study.cluster import (
+    run_study_on_ray as run_study_on_ray,
+    stream_study_on_ray as stream_study_on_ray,
+)
 from ._study.engine import (
     balanced_chunk_size as balanced_chunk_size,
     MICRO_BATCH as MICRO_BATCH,
@@ -223,4 +238,14 @@ from ._vision.render import (
 from ._vision.team import load_team as load_team, save_team as save_team, Team as Team
 
 
-__version__ = "0.1.0"
+def _package_version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("jaxloc")
+    except PackageNotFoundError:  # a source tree that is not installed
+        return "0.0.0+unknown"
+
+
+__version__ = _package_version()
+"""jaxloc's version, from the installed package's metadata."""

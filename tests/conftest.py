@@ -1,3 +1,4 @@
+import gc
 import os
 import random
 
@@ -17,6 +18,20 @@ _XLA_CACHE = os.path.abspath(
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _XLA_CACHE)
 os.environ.setdefault("JAXLOC_COMPILE_CACHE", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop every compiled program after each test module. Each executable keeps its
+    machine code in memory mappings (thousands per study-sized program); one process
+    running the whole suite would pass the kernel's limit (`vm.max_map_count`, 65530)
+    and XLA would crash in `mmap`. Later modules reload what they share from the
+    persistent compilation cache."""
+    yield
+    jax.clear_caches()
+    gc.collect()
+
 
 SHARED = os.path.join(os.path.dirname(__file__), "..", "..", "shared")
 

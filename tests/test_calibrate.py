@@ -251,8 +251,13 @@ def test_camera_file_errors(tmp_path):
     with pytest.raises(ValueError, match="intrinsics"):
         load_camera(kal)
     kal.write_text("cam0: {camera_model: pinhole, intrinsics: [1, 2, 3, 4], "
+                   "distortion_model: fov, distortion_coeffs: [0.9], "
+                   "resolution: [640, 480]}\n")  # fmt: skip
+    with pytest.raises(ValueError, match="distortion_model: fov"):
+        load_camera(kal)
+    kal.write_text("cam0: {camera_model: pinhole, intrinsics: [1, 2, 3, 4], "
                    "distortion_model: equidistant, resolution: [640, 480]}\n")  # fmt: skip
-    with pytest.raises(ValueError, match="distortion_model"):
+    with pytest.raises(ValueError, match="missing `distortion_coeffs`"):
         load_camera(kal)
 
 

@@ -128,10 +128,15 @@ def test_cli_calibrate_ptz(zoom_series, tmp_path, capsys):
     assert "ptz calibration at 3 zoom steps from 24 images" in out
     report = json.loads((tmp_path / "ptz.json").read_text())
     np.testing.assert_allclose(report["zoom_table"]["fx"], TRUE_TABLE.fx, rtol=5e-3)
-    for z in (0.0, 0.5, 1.0):
-        cam = load_camera(tmp_path / f"ptz_zoom{z:.3f}.yaml")
-        k = [0.0, 0.5, 1.0].index(z)
-        assert abs(float(cam.fx) - float(TRUE_TABLE.fx[k])) < 5e-3 * float(TRUE_TABLE.fx[k])
+    # One camera file: the PTZ with the whole table, exactly the report's (issue 20.4).
+    assert sorted(p.name for p in tmp_path.iterdir() if p.is_file()) == ["ptz.json", "ptz.yaml"]
+    cam = load_camera(tmp_path / "ptz.yaml")
+    assert isinstance(cam, jaxloc.PTZCamera) and cam.zoom_table is not None
+    t = cam.zoom_table
+    for key, name in (("zooms", "zooms"), ("fx", "fx"), ("fy", "fy"), ("cx", "cx"),
+                      ("cy", "cy"), ("distortion_coefficients", "dist")):  # fmt: skip
+        np.testing.assert_array_equal(np.asarray(getattr(t, name)), report["zoom_table"][key])
+    assert "wrote " + str(tmp_path / "ptz.yaml") in out
 
 
 def test_calibrate_ptz_errors(zoom_series):

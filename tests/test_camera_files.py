@@ -1,10 +1,13 @@
 """Camera files (jaxloc._cameras.files): the one camera dict, OpenCV YAML, Kalibr
-camchains read with Kalibr's rules (issue 17 cases 6, 11, 13; issue 18; issue 20 item 5)."""
+camchains read with Kalibr's rules (issue 17 cases 6, 11, 13; issue 18; issue 20 items 4
+and 5): every camera model and distortion model, and the PTZ's zoom table, exactly."""
 
 import json
 import os
 
+import cv2
 import equinox as eqx
+import jax.numpy as jnp
 import jaxloc
 import numpy as np
 import pytest
@@ -13,7 +16,9 @@ from jaxloc._cameras.files import (
     camchain_to_kalibr,
     camera_from_dict,
     camera_from_kalibr,
+    camera_from_spec,
     camera_to_dict,
+    camera_to_kalibr,
     load_camera,
     save_camchain,
     save_camera,
@@ -26,28 +31,196 @@ OMNI = jaxloc.OmniCamera(0.93, 190.2, 188.4, 321.7, 236.9, skew=0.05,
                          dist=(-0.02, 0.004, 1e-3, -5e-4), elevation_min=-0.3,
                          elevation_max=0.6)  # fmt: skip
 PTZ = jaxloc.paper_ptz_camera(pan=0.1, tilt=-0.05, zoom=0.3)
-CAMERAS = {"pinhole": PINHOLE, "omni": OMNI, "ptz": PTZ}
+# Values with every bit of a float64 mantissa in use (1/3, 0.1, ...): exact or not at all.
+RATIONAL = (1.8, 0.9, 1e-3, -5e-4, 0.05, 2.1, 1.3, 0.2 / 3)
+FISHEYE = (-0.013, 0.02, -0.015, 0.004 / 3)
+
+
+def _table(m: int) -> jaxloc.ZoomTable:
+    rows = np.array([[-0.2, 0.05, 1e-3, -5e-4, 0.01, 0.3, 0.1, 0.02],
+                     [-0.1, 0.02, 5e-4, 0.0, 0.0, 0.2, 0.05, 0.01],
+                     [-0.02, 0.0, 0.0, 1e-4, 0.0, 0.1, 0.0, 0.0]])[:, :m] / 3  # fmt: skip
+    return jaxloc.ZoomTable([0.0, 1 / 3, 1.0], [420.1, 700.0 / 3, 1500.7], [421.5, 702.0, 1504.0],
+                            [321.0, 318.5 / 3, 316.0], [238.0, 240.5, 243.1], rows)  # fmt: skip
+
+
+CAMERAS = {
+    "pinhole": PINHOLE,
+    "pinhole_rational": jaxloc.PinholeCamera(400.0, 402.0 / 3, 320.0, 240.0, RATIONAL),
+    "pinhole_equidistant": jaxloc.PinholeCamera(280.0, 281.0, 322.0 / 3, 238.0, FISHEYE,
+                                                distortion="equidistant"),  # fmt: skip
+    "omni": OMNI,
+    "omni_equidistant": jaxloc.OmniCamera(0.9, 180.0, 182.0 / 3, 320.0, 240.0, skew=0.5,
+                                          dist=FISHEYE, distortion="equidistant"),  # fmt: skip
+    "ptz": PTZ,
+    "ptz_rational": jaxloc.PTZCamera(0.2, 0.1, 0.4, dist=RATIONAL),
+    "ptz_equidistant": jaxloc.PTZCamera(0.2, 0.1, 0.4, dist=FISHEYE, distortion="equidistant"),
+    "ptz_table": jaxloc.PTZCamera(pan=-0.4, tilt=0.25, zoom=0.7, zoom_table=_table(5)),
+    "ptz_table_rational": jaxloc.PTZCamera(zoom=0.5, zoom_table=_table(8)),
+    "ptz_table_equidistant": jaxloc.PTZCamera(zoom=1 / 3, zoom_table=_table(4),
+                                              distortion="equidistant"),  # fmt: skip
+}
+FORMATS = [("json", ".json"), ("yaml", ".yaml"), ("opencv", ".yaml")]
 
 
 @pytest.mark.parametrize("model", list(CAMERAS))
-@pytest.mark.parametrize("fmt, suffix", [("json", ".json"), ("yaml", ".yaml"),
-                                         ("opencv", ".yaml")])  # fmt: skip
-def test_every_model_round_trips_exactly(tmp_path, model, fmt, suffix):
+@pytest.mark.parametrize("fmt, suffix", FORMATS)
+def test_every_model_and_distortion_round_trips_exactly(tmp_path, model, fmt, suffix):
     camera = CAMERAS[model]
     path = tmp_path / f"camera{suffix}"
     save_camera(camera, path, fmt)
     back = load_camera(path)
-    # OpenCV has no PTZ: its files hold the PTZ's pinhole at the current zoom.
-    want = camera.pinhole() if (fmt == "opencv" and model == "ptz") else camera
-    assert bool(eqx.tree_equal(back, want, typematch=True))
-    assert bool(eqx.tree_equal(camera_from_dict(camera_to_dict(camera)), camera))
+    # float64 bit for bit, the static distortion model and a PTZ's zoom table included
+    # (an OpenCV file holds a PTZ whole, not its pinhole at the current zoom).
+    assert bool(eqx.tree_equal(back, camera, typematch=True)), (back, camera)
+    assert bool(eqx.tree_equal(camera_from_dict(camera_to_dict(camera)), camera,
+                               typematch=True))  # fmt: skip
     assert os.listdir(tmp_path) == [path.name]  # written atomically, nothing left over
+
+
+def test_equidistant_is_not_read_back_as_radtan(tmp_path):
+    # On df51333 the camera dict had no distortion model: an equidistant camera was
+    # written as 4 coefficients that loaded back, silently, as Brown-Conrady.
+    fish = CAMERAS["pinhole_equidistant"]
+    for fmt, suffix in FORMATS:
+        save_camera(fish, tmp_path / f"fish{suffix}", fmt)
+        back = load_camera(tmp_path / f"fish{suffix}")
+        assert back.distortion == "equidistant" and back.dist.shape == (4,)
+        p = np.array([[0.3, -0.2, 1.0], [1.5, 1.0, 1.0]])
+        np.testing.assert_array_equal(back.project(p), fish.project(p))
+    assert camera_to_dict(fish)["distortion_model"] == "equidistant"
+    assert camera_to_dict(CAMERAS["pinhole_rational"])["distortion_model"] == "rational"
+    assert camera_to_dict(CAMERAS["omni_equidistant"])["distortion_model"] == "equidistant"
+
+
+def test_a_ptz_file_holds_its_whole_zoom_table(tmp_path):
+    # On df51333 camera_to_dict(PTZCamera) dropped the zoom table without a word.
+    cam = CAMERAS["ptz_table"]
+    d = camera_to_dict(cam)
+    assert list(d) == ["model", "image_width", "image_height", "distortion_model", "pan",
+                       "tilt", "zoom", "zoom_table"]  # fmt: skip
+    t = d["zoom_table"]
+    assert list(t) == ["zooms", "fx", "fy", "cx", "cy", "distortion_coefficients"]
+    assert t["zooms"] == [0.0, 1 / 3, 1.0] and t["fx"][1] == 700.0 / 3
+    assert np.shape(t["distortion_coefficients"]) == (3, 5)
+    # The OpenCV file stores the table as a FileStorage map of matrices, readable by cv2.
+    save_camera(cam, tmp_path / "ptz.yaml", "opencv")
+    fs = cv2.FileStorage(str(tmp_path / "ptz.yaml"), cv2.FILE_STORAGE_READ)
+    np.testing.assert_array_equal(fs.getNode("zoom_table").getNode("fx").mat().ravel(), t["fx"])
+    assert fs.getNode("model").string() == "ptz"
+    fs.release()
+    # Each camera at any zoom is the same camera after the round trip.
+    back = load_camera(tmp_path / "ptz.yaml")
+    for z in (0.0, 0.2, 1 / 3, 0.9):
+        a = eqx.tree_at(lambda c: c.zoom, back, jnp.asarray(z))
+        b = eqx.tree_at(lambda c: c.zoom, cam, jnp.asarray(z))
+        assert bool(eqx.tree_equal(a.pinhole(), b.pinhole()))
+
+
+def _pinhole_dict():
+    return camera_to_dict(PINHOLE)
+
+
+def _ptz_table_dict():
+    return camera_to_dict(CAMERAS["ptz_table"])
+
+
+@pytest.mark.parametrize(
+    "make, change, match",
+    [
+        (_pinhole_dict, lambda d: d.update(distortion_model="rational",
+                                           distortion_coefficients=[0.1, 0.0, 0.0, 0.0]),
+         r"`distortion_coefficients` must hold 8 \(k1, k2, p1, p2, k3, k4, k5, k6\) "
+         r"coefficients for `distortion_model: rational`; got \[0.1, 0.0, 0.0, 0.0\]"),
+        (_pinhole_dict, lambda d: d.update(distortion_model="equidistant"),
+         r"must hold 4 \(k1, k2, k3, k4\) coefficients for `distortion_model: equidistant`"),
+        (_pinhole_dict, lambda d: d.update(distortion_coefficients=[0.1] * 8),
+         r"must hold 4 \(k1, k2, p1, p2\) or 5 .* for `distortion_model: radtan`"),
+        (_pinhole_dict, lambda d: d.update(distortion_model="kannala"),
+         r"`distortion_model` must be one of radtan, rational, equidistant .*'kannala'"),
+        (_pinhole_dict, lambda d: d.update(fisheye_model=1),
+         r"`fisheye_model: 1` .* but is `distortion_model: radtan`"),
+        (lambda: camera_to_dict(OMNI), lambda d: d.update(distortion_model="rational"),
+         r"`distortion_model: rational` is not a distortion of the omni camera"),
+        (_ptz_table_dict, lambda d: d["zoom_table"].update(fx=[1.0, 2.0]),
+         r"`zoom_table.fx` has 2 entries but `zoom_table.zooms` has 3 zoom steps"),
+        (_ptz_table_dict, lambda d: d["zoom_table"].update(zooms=[0.0, 0.6, 0.5]),
+         r"`zoom_table.zooms` must be at least two zoom steps, strictly increasing in "
+         r"\[0, 1\]; got \[0.0, 0.6, 0.5\]"),
+        (_ptz_table_dict, lambda d: d["zoom_table"].update(zooms=[0.0, 0.5, 1.5]),
+         r"strictly increasing in \[0, 1\]"),
+        (_ptz_table_dict,
+         lambda d: d["zoom_table"].update(distortion_coefficients=[[0.0] * 5] * 2),
+         r"`zoom_table.distortion_coefficients` has 2 entries but `zoom_table.zooms` has 3"),
+        (_ptz_table_dict,
+         lambda d: d["zoom_table"].update(distortion_coefficients=[[0.0] * 5, [0.0] * 4,
+                                                                   [0.0] * 5]),
+         r"same number of coefficients at every zoom step; got rows of \[4, 5\]"),
+        (_ptz_table_dict, lambda d: d.update(distortion_model="equidistant"),
+         r"`zoom_table.distortion_coefficients\[0\]` must hold 4 \(k1, k2, k3, k4\)"),
+        (_ptz_table_dict, lambda d: d["zoom_table"].pop("cy"), r"`zoom_table` is missing `cy`"),
+        (_ptz_table_dict, lambda d: d["zoom_table"].update(fxx=[1.0]),
+         r"Unknown key `fxx` in .*`zoom_table` \(did you mean `fx`\?\)"),
+        (_ptz_table_dict, lambda d: d.update(hfov_wide=1.0),
+         r"`hfov_wide` is not used beside a `zoom_table`"),
+        (_ptz_table_dict, lambda d: d.update(distortion_coefficients=[0.0] * 5),
+         r"`distortion_coefficients` is not used beside a `zoom_table`"),
+    ],
+)  # fmt: skip
+def test_inconsistent_camera_files_name_the_key_and_the_file(tmp_path, make, change, match):
+    d = make()
+    change(d)
+    for fmt, suffix in (("json", ".json"), ("yaml", ".yaml")):
+        path = tmp_path / f"bad{suffix}"
+        path.write_text(json.dumps(d) if fmt == "json" else _yaml(d))
+        with pytest.raises(FileFormatError, match=match) as info:
+            load_camera(path)
+        assert f"`{path}`" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_distortion_model_defaults_and_aliases():
+    d = _pinhole_dict()
+    del d["distortion_model"]  # OpenCV's files: radtan, or rational by the count
+    assert bool(eqx.tree_equal(camera_from_dict(d), PINHOLE))
+    d["distortion_coefficients"] = list(RATIONAL)
+    assert bool(eqx.tree_equal(camera_from_dict(d), CAMERAS["pinhole_rational"].__class__(
+        530.5, 531.25, 320.1, 241.7, RATIONAL)))  # fmt: skip
+    d["distortion_coefficients"] = [0.1, 0.2, 0.01, 0.02]  # 4: radtan with k3 = 0
+    assert camera_from_dict(d).dist.tolist() == [0.1, 0.2, 0.01, 0.02, 0.0]
+    d.update(distortion_model="fisheye", distortion_coefficients=list(FISHEYE))
+    fish = camera_from_dict(d)
+    assert fish.distortion == "equidistant" and fish.dist.tolist() == list(FISHEYE)
+    assert camera_to_dict(fish)["distortion_model"] == "equidistant"  # written canonically
+    # OpenCV's calibration sample marks a cv2.fisheye calibration with `fisheye_model: 1`.
+    del d["distortion_model"]
+    d["fisheye_model"] = 1
+    assert bool(eqx.tree_equal(camera_from_dict(d), fish))
+    # A model without coefficients is that model without distortion.
+    for name, n in (("radtan", 5), ("rational", 8), ("equidistant", 4)):
+        e = {"model": "pinhole", "image_width": 640, "image_height": 480,
+             "camera_matrix": [[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]],
+             "distortion_model": name}  # fmt: skip
+        assert camera_from_dict(e).dist.tolist() == [0.0] * n
+
+
+def test_preset_overrides_in_the_constructor_form():
+    # The constructor form of a preset (used for overrides that are not camera-dict
+    # keys) failed on df51333 on the static `distortion` field.
+    cam = camera_from_spec({"preset": "paper_ptz", "image_size": [800, 600]}, "cameras.ptz")
+    assert cam.image_size == (800, 600) and cam.distortion == "radtan"
+    fish = camera_from_spec({"preset": "paper_overhead", "distortion": "equidistant",
+                             "dist": list(FISHEYE)}, "cameras.overhead")  # fmt: skip
+    assert fish.distortion == "equidistant" and fish.dist.tolist() == list(FISHEYE)
+    with pytest.raises(ValueError, match=r"`cameras.ptz.distortion` must be one of"):
+        camera_from_spec({"preset": "paper_ptz", "distortion": "kb", "image_size": [8, 6]},
+                         "cameras.ptz")  # fmt: skip
 
 
 def test_the_camera_dict_has_opencv_keys():
     d = camera_to_dict(PINHOLE)
     assert list(d) == ["model", "image_width", "image_height", "camera_matrix",
-                       "distortion_coefficients"]  # fmt: skip
+                       "distortion_model", "distortion_coefficients"]  # fmt: skip
+    assert d["distortion_model"] == "radtan"
     assert d["camera_matrix"][0] == [530.5, 0.0, 320.1]
     assert camera_to_dict(OMNI)["camera_matrix"][0][1] == 0.05  # omni skew
     assert set(camera_to_dict(PTZ)) >= {"pan", "tilt", "zoom", "hfov_wide", "hfov_tele"}
@@ -72,16 +245,23 @@ def test_a_misspelled_key_is_an_error_not_zero_distortion(tmp_path):
         assert "did you mean `distortion_coefficients`" in text
 
 
-def test_opencv_sample_files_load_and_fisheye_files_are_refused(tmp_path):
+def test_opencv_sample_files_load_and_fisheye_files_are_equidistant(tmp_path):
     # What OpenCV's calibration sample writes beside the camera is read and ignored;
-    # its fisheye model (4 equidistant coefficients) is not mistaken for Brown-Conrady.
+    # its fisheye model (`fisheye_model: 1`, 4 equidistant coefficients) is read as
+    # equidistant, never mistaken for Brown-Conrady.
     save_camera(PINHOLE, tmp_path / "c.yaml", "opencv",
                 extra={"avg_reprojection_error": 0.3, "nframes": 13, "flags": 2})  # fmt: skip
     assert bool(eqx.tree_equal(load_camera(tmp_path / "c.yaml"), PINHOLE))
     text = (tmp_path / "c.yaml").read_text().replace("flags: 2", "fisheye_model: 1")
     (tmp_path / "c.yaml").write_text(text)
-    with pytest.raises(FileFormatError, match="fisheye"):
+    with pytest.raises(FileFormatError, match="fisheye_model: 1.*distortion_model: radtan"):
         load_camera(tmp_path / "c.yaml")
+    fish = CAMERAS["pinhole_equidistant"]
+    save_camera(fish, tmp_path / "f.yaml", "opencv", extra={"fisheye_model": 1})
+    text = (tmp_path / "f.yaml").read_text()
+    text = "\n".join(line for line in text.splitlines() if "distortion_model" not in line)
+    (tmp_path / "f.yaml").write_text(text + "\n")
+    assert bool(eqx.tree_equal(load_camera(tmp_path / "f.yaml"), fish))
     with pytest.raises(ValueError, match="Unknown key `bogus` in `extra`"):
         save_camera(PINHOLE, tmp_path / "d.yaml", extra={"bogus": 1})
 
@@ -190,26 +370,82 @@ ENTRY = {"camera_model": "pinhole", "intrinsics": [500.0, 501.0, 320.0, 240.0],
 
 
 @pytest.mark.parametrize("model", ["pinhole", "omni"])
-@pytest.mark.parametrize("distortion", ["radtan", "none"])
-def test_pinhole_and_omni_with_radtan_or_none_are_read(model, distortion):
+@pytest.mark.parametrize("distortion", ["radtan", "equidistant", "none"])
+def test_pinhole_and_omni_with_every_kalibr_distortion_are_read(model, distortion):
     e = dict(ENTRY, camera_model=model, distortion_model=distortion)
     if model == "omni":
         e["intrinsics"] = [0.9, *ENTRY["intrinsics"]]
     if distortion == "none":
         e["distortion_coeffs"] = []
     cam = camera_from_kalibr({"cam0": e})
-    dist = np.asarray(cam.dist)[:4]
-    np.testing.assert_array_equal(dist, e["distortion_coeffs"] or [0.0] * 4)
     assert type(cam) is {"pinhole": jaxloc.PinholeCamera, "omni": jaxloc.OmniCamera}[model]
+    assert cam.distortion == ("equidistant" if distortion == "equidistant" else "radtan")
+    dist = np.asarray(cam.dist)
+    np.testing.assert_array_equal(dist[:4], e["distortion_coeffs"] or [0.0] * 4)
+    if model == "pinhole" and distortion != "equidistant":
+        assert dist.tolist()[4:] == [0.0]  # Kalibr's radtan is Brown-Conrady with k3 = 0
     assert float(cam.fx) == 500.0 and cam.image_size == (640, 480)
+
+
+KALIBR_CAMERAS = {
+    ("pinhole", "radtan"): jaxloc.PinholeCamera(530.5, 531.25 / 3, 320.1, 241.7,
+                                                (-0.27, 0.05, 0.001, -0.0003 / 3, 0.0)),
+    ("pinhole", "equidistant"): CAMERAS["pinhole_equidistant"],
+    ("pinhole", "none"): jaxloc.PinholeCamera(530.5, 531.25, 320.1 / 3, 241.7),
+    ("omni", "radtan"): jaxloc.OmniCamera(0.93, 190.2, 188.4 / 3, 321.7, 236.9,
+                                          dist=(-0.02, 0.004, 1e-3, -5e-4 / 3)),
+    ("omni", "equidistant"): jaxloc.OmniCamera(0.93 / 3, 190.2, 188.4, 321.7, 236.9, dist=FISHEYE,
+                                               distortion="equidistant"),
+    ("omni", "none"): jaxloc.OmniCamera(0.93, 190.2, 188.4, 321.7 / 3, 236.9),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("model, distortion", list(KALIBR_CAMERAS))
+def test_every_kalibr_pair_is_written_and_read_back_exactly(tmp_path, model, distortion):
+    camera = KALIBR_CAMERAS[(model, distortion)]
+    path = tmp_path / "camchain.yaml"
+    save_camchain([PINHOLE.__class__(500.0, 500.0, 320.0, 240.0), camera], path,
+                  [_rigid(0.2, [0.1, 0.0, 0.0])])  # fmt: skip
+    chain = yaml.safe_load(path.read_text())
+    e = chain["cam1"]
+    assert (e["camera_model"], e["distortion_model"]) == (model, distortion)
+    if (model, distortion) != ("omni", "equidistant"):
+        # Kalibr's Python reader refuses omni + equidistant ("not yet supported"), though
+        # its C++ has the projection; jaxloc writes and reads it all the same.
+        kalibr_reader_accepts(chain)
+    back = load_camera(path, name="cam1")
+    assert bool(eqx.tree_equal(back, camera, typematch=True)), (back, camera)
+
+
+@pytest.mark.parametrize(
+    "camera, match",
+    [
+        (CAMERAS["pinhole_rational"], r"`cam0` has OpenCV's rational distortion \(8 "
+         r"coefficients\), which Kalibr has no model for"),
+        (CAMERAS["ptz_table"],
+         "`cam0` is a PTZ camera with a zoom table, which has no Kalibr form"),
+        (PINHOLE, r"Kalibr's `radtan` distortion has no k3; camera `cam0` has k3 = 0.02"),
+        (OMNI, r"Kalibr's `omni` model has no skew; camera `cam0` has skew = 0.05"),
+    ],
+)  # fmt: skip
+def test_cameras_kalibr_cannot_hold_are_refused_on_write(tmp_path, camera, match):
+    # On df51333 an equidistant pinhole raised an IndexError (`d[4]` of 4 coefficients);
+    # a rational one and a tabled PTZ must not be written as something else.
+    with pytest.raises(ValueError, match=match):
+        save_camera(camera, tmp_path / "k.yaml", "kalibr")
+    with pytest.raises(ValueError, match=match.replace("cam0", "cam1")):
+        camchain_to_kalibr([KALIBR_CAMERAS[("pinhole", "none")], camera], [np.eye(4)])
+    assert not os.listdir(tmp_path)
+    # A PTZ without a table is its pinhole at the current zoom.
+    assert bool(eqx.tree_equal(camera_from_kalibr(camera_to_kalibr(
+        CAMERAS["ptz_equidistant"])), CAMERAS["ptz_equidistant"].pinhole()))  # fmt: skip
 
 
 @pytest.mark.parametrize(
     "model, distortion, coeffs, intrinsics, named",
     [
-        ("pinhole", "equidistant", [0.1, 0.0, 0.0, 0.0], 4, "equidistant"),
         ("pinhole", "fov", [0.9], 4, "fov"),
-        ("omni", "equidistant", [0.1, 0.0, 0.0, 0.0], 5, "equidistant"),
+        ("omni", "fov", [0.9], 5, "fov"),
         ("eucm", "none", [], 6, "eucm"),
         ("ds", "none", [], 6, "ds"),
     ],
@@ -233,6 +469,8 @@ def test_other_kalibr_models_are_refused_by_name(tmp_path, model, distortion, co
         (lambda c: c["cam0"].pop("distortion_coeffs"), "missing `distortion_coeffs`"),
         (lambda c: c["cam0"].update(distortion_model="none"), "must be \\[\\] for distortion"),
         (lambda c: c["cam0"].update(distortion_coeffs=[0.1]), "list of 4 numbers"),
+        (lambda c: c["cam0"].update(distortion_model="equidistant", distortion_coeffs=[0.1] * 5),
+         "list of 4 numbers"),
         (lambda c: c["cam0"].update(intrinsics=[500.0, 501.0, 320.0]), "list of 4 numbers"),
         (lambda c: c["cam0"].update(intrinsics=[500.0, 501.0, -1.0, 240.0]), "principal point"),
         (lambda c: c["cam0"].update(rostopic=5), "`rostopic` must be a string"),
@@ -254,3 +492,69 @@ def test_camchains_are_read_with_kalibrs_rules(tmp_path, change, match):
         for name in sorted(chain):  # a camera's own entry is checked when it is read
             load_camera(path, name=name)
     assert f"`{path}`" in str(info.value)
+
+
+# --------------------------------------------------------------------------------------
+# `jaxloc calibrate --model ptz`: one camera file with the whole zoom table.
+
+
+@pytest.fixture
+def fake_ptz_calibration(tmp_path, monkeypatch):
+    """`jaxloc calibrate --model ptz` over three (empty) image folders, with
+    `calibrate_ptz` replaced by one returning `CAMERAS["ptz_table_rational"]`'s table
+    (tests/test_calibrate_ptz.py runs the real calibration on rendered images)."""
+    import argparse
+
+    import jaxloc._vision.calibrate as calibrate_module
+    from jaxloc._cli.images import register
+    from jaxloc._vision.calibrate import Calibration, ZoomCalibration
+
+    camera = eqx.tree_at(lambda c: c.zoom, CAMERAS["ptz_table_rational"], jnp.asarray(0.0))
+    t = camera.zoom_table
+    zooms = [float(z) for z in np.asarray(t.zooms)]
+
+    def fake_calibrate_ptz(sets, board, square, **kwargs):
+        assert [z for z, _ in sets] == zooms and kwargs["rational"]
+        steps = [
+            Calibration(jaxloc.PinholeCamera(t.fx[k], t.fy[k], t.cx[k], t.cy[k], t.dist[k]),
+                        0.1 + k, {"fx": 0.01}, [0.1], np.zeros((1, 7)), list(images), [])
+            for k, (_, images) in enumerate(sets)
+        ]  # fmt: skip
+        return ZoomCalibration(camera=camera, zooms=zooms, steps=steps)
+
+    monkeypatch.setattr(calibrate_module, "calibrate_ptz", fake_calibrate_ptz)
+    argv = ["calibrate", "--model", "ptz", "--board", "9x6", "--square", "0.03", "--rational"]
+    for k, z in enumerate(zooms):
+        folder = tmp_path / f"zoom{k}"
+        folder.mkdir()
+        cv2.imwrite(str(folder / "a.png"), np.zeros((8, 8), np.uint8))
+        argv += ["--zoom", repr(z), str(folder)]
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    return lambda extra: parser.parse_args(argv + extra), camera
+
+
+@pytest.mark.parametrize("fmt, suffix", FORMATS)
+def test_calibrate_ptz_writes_one_file_with_the_whole_table(tmp_path, fake_ptz_calibration,
+                                                            fmt, suffix, capsys):  # fmt: skip
+    # On df51333 `jaxloc calibrate --model ptz` wrote one pinhole file per zoom step.
+    parse, camera = fake_ptz_calibration
+    out = tmp_path / f"ptz{suffix}"
+    args = parse(["--out", str(out), "--format", fmt, "--json", str(tmp_path / "report.json")])
+    assert args.func(args) == 0
+    files = sorted(p.name for p in tmp_path.iterdir() if p.is_file())
+    assert files == sorted([out.name, "report.json"])
+    back = load_camera(out)
+    assert bool(eqx.tree_equal(back, camera, typematch=True))
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["zoom_table"] == camera_to_dict(back)["zoom_table"]
+    assert [s["zoom"] for s in report["steps"]] == report["zoom_table"]["zooms"]
+    assert f"wrote {out}" in capsys.readouterr().out
+
+
+def test_calibrate_ptz_refuses_kalibr_before_calibrating(tmp_path, fake_ptz_calibration):
+    parse, _ = fake_ptz_calibration
+    args = parse(["--out", str(tmp_path / "k.yaml"), "--format", "kalibr"])
+    with pytest.raises(ValueError, match="--model ptz writes one camera file .* Kalibr"):
+        args.func(args)
+    assert not (tmp_path / "k.yaml").exists()

@@ -63,9 +63,12 @@ def test_cli_simulate_round_trips_a_scenario_file(scenario, reference, tmp_path,
     jaxloc.save_scenario(scenario, path)
     out = str(tmp_path / "report.json")
     args = ["simulate", "--scenario", path, "--trials", str(N), *STUDY]
-    assert main(args + ["--json", out]) == 0
+    plot = tmp_path / "cdf.png"
+    assert main(args + ["--json", out, "--plot", str(plot)]) == 0
     text = capsys.readouterr().out
     assert "Sequential strategy" in text and "Position error (cm" in text
+    assert "paper run" in text  # the paper's own scenario: its single run is shown
+    assert f"wrote {out}" in text and os.path.getsize(plot) > 0
     report = _strict_json(out)
     summary = report["strategies"]["sequential"]
     expected = jaxloc.summarize(reference, METHODS)
@@ -120,6 +123,7 @@ def test_a_study_where_every_trial_fails_prints_its_table_and_writes_json(tmp_pa
     assert code == 1 and "Traceback" not in captured.err
     assert "no trial of the sequential study succeeded" in captured.err
     assert "not_visible 32" in captured.out and "n/a" in captured.out
+    assert "paper run" not in captured.out  # not the paper's scenario: no paper column
     report = _strict_json(out)
     summary = report["strategies"]["sequential"]
     assert summary["methods"]["robust"]["n_ok"] == 0
@@ -220,11 +224,78 @@ def test_a_corrupt_study_manifest_in_out_is_one_line(tmp_path, capsys):
     assert "study.json" in _one_error_line(capsys)
 
 
+def test_quiet_prints_only_the_results(scenario, tmp_path, capsys):
+    path = str(tmp_path / "scenario.yaml")
+    jaxloc.save_scenario(scenario, path)
+    out = str(tmp_path / "report.json")
+    args = ["simulate", "--scenario", path, "--trials", str(N), *STUDY, "--quiet"]
+    assert main(args + ["--json", out]) == 0
+    captured = capsys.readouterr()
+    assert "Sequential strategy" in captured.out and "Position error (cm" in captured.out
+    for chatter in ("wrote", "Total", " s including compilation"):
+        assert chatter not in captured.out, chatter
+    assert captured.err == "" and os.path.getsize(out) > 0
+    assert main(["simulate", "--scenario", str(tmp_path / "missing.yaml"), "--quiet"]) == 2
+    _one_error_line(capsys)  # errors are still one line
+
+
+def _parsers():
+    """Every (name, parser) of the `jaxloc` command: the main one and each subcommand's."""
+    import argparse
+
+    from jaxloc._cli.main import build_parser
+
+    parser = build_parser()
+    (sub,) = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    return [("jaxloc", parser), *((f"jaxloc {n}", p) for n, p in sub.choices.items())]
+
+
+def test_every_command_and_option_explains_itself():
+    import argparse
+
+    parsers = _parsers()
+    assert {name for name, _ in parsers} >= {
+        "jaxloc", "jaxloc table1", "jaxloc simulate", "jaxloc cameras", "jaxloc calibrate",
+        "jaxloc localize", "jaxloc design",
+    }  # fmt: skip
+    for name, parser in parsers:
+        assert parser.description and len(parser.description) > 40, name
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for choice in action._choices_actions:
+                    assert choice.help, f"{name} {choice.dest}"
+                continue
+            flag = "/".join(action.option_strings) or action.dest
+            assert action.help and action.help.strip() and action.help != argparse.SUPPRESS, (
+                f"`{name} {flag}` has no help text"
+            )
+    helps = {n: {"/".join(a.option_strings): a.help for a in p._actions} for n, p in parsers}
+    for method in jaxloc.METHODS:  # --methods lists its choices
+        assert method in helps["jaxloc simulate"]["--methods"]
+    assert "per strategy" not in helps["jaxloc simulate"]["--trials"]  # one scenario, one study
+    assert "two studies" in helps["jaxloc table1"]["--trials"]
+    for name in ("jaxloc table1", "jaxloc simulate"):
+        assert "-q/--quiet" in helps[name] and "--ray" in helps[name]
+
+
+def test_version_comes_from_the_package_metadata(capsys):
+    from importlib.metadata import version
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"jaxloc {version('jaxloc')}"
+    assert jaxloc.__version__ == version("jaxloc")
+    run = subprocess.run([sys.executable, "-m", "jaxloc", "--version"], capture_output=True,
+                         text=True, timeout=120)  # fmt: skip
+    assert run.returncode == 0 and run.stdout.strip() == f"jaxloc {version('jaxloc')}", run
+
+
 def test_help_documents_the_exit_codes(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     text = capsys.readouterr().out
-    for code in ("0 ", "1 ", "2 ", "130 "):
+    for code in ("0 ", "1 ", "2 ", "3 ", "130 "):
         assert f"\n  {code}" in text, code
     assert "interrupted" in text
 

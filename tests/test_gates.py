@@ -21,8 +21,19 @@ BATCH = 32
 SUCCESSFUL = RESULTS.successful._value
 
 
-def _corrupt(obs, kind: str, key):
-    """Observations with one realistic defect."""
+KINDS = (
+    "clean", "swap_overhead", "overhead_first_step_only", "nan_overhead_pixel",
+    "bearings_only", "negative_odometry", "zero_sigma",
+)  # fmt: skip
+
+
+def _corrupt(obs, kind: int):
+    """Observations with one realistic defect, `KINDS[kind]` (traced: one program)."""
+    return jax.lax.switch(kind, [ft.partial(_corrupt_as, kind=k) for k in KINDS], obs)
+
+
+def _corrupt_as(obs, kind: str):
+    """Observations with the defect `kind`."""
     if kind == "clean":
         return obs
     if kind == "swap_overhead":  # two overhead images swapped between steps
@@ -65,13 +76,13 @@ def _corrupt(obs, kind: str, key):
     raise ValueError(kind)
 
 
-@ft.partial(jax.jit, static_argnames=("strategy", "kind"))
+@ft.partial(jax.jit, static_argnames="strategy")
 def _pipeline(keys, strategy, kind):
     scenario = jaxloc.Scenario.paper(strategy)
 
     def one(key):
         truth, obs, visible = jaxloc.simulate_cycle(scenario, key)
-        obs = _corrupt(obs, kind, key)
+        obs = _corrupt(obs, kind)
         closed = jaxloc.localize_cycle(obs, scenario.rig, throw=False)
         refined = jaxloc.refine_cycle(obs, scenario.rig, closed, throw=False)
         c_true = truth.poses.T_world_overhead.translation()
@@ -101,7 +112,7 @@ def _pipeline(keys, strategy, kind):
 
 def _run(strategy, kind, seed=0):
     keys = jr.split(jr.key(seed), BATCH)
-    out = jax.tree.map(np.asarray, _pipeline(keys, strategy, kind))
+    out = jax.tree.map(np.asarray, _pipeline(keys, strategy, KINDS.index(kind)))
     return {k: v[out["visible"]] for k, v in out.items() if v is not None}
 
 

@@ -98,7 +98,7 @@ def test_end_to_end_within_3x_monte_carlo(cycle):
     mc_pos, mc_rot = [], []
     for k in keys:
         truth, obs, visible = _simulate(SCENARIO, k)
-        est = _localize(obs)
+        est = _localize(obs, SCENARIO.rig)
         if bool(visible) and int(jaxloc.status_code(est.result)) == 0:
             p, r = _errors(est, truth)
             mc_pos.append(p)

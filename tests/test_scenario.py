@@ -46,13 +46,14 @@ def _custom():
 
 def test_paper_defaults():
     s = Scenario.paper()
-    assert s.strategy == "sequential" and s.noise_model == "paper"
+    assert s.strategy == "sequential" and s.rig.noise_model == "paper"
     assert isinstance(s.ground, SaddleSurface) and isinstance(s.ceiling, SinusoidSurface)
     assert float(s.ground.radius_x) == -8.0 and float(s.ground.radius_y) == 8.0
     assert float(s.ceiling.z0) == 3.5 and float(s.ceiling.period) == 10.0
     assert float(s.ceiling.amplitude) == 0.25
     assert float(s.overhead_heading) == pytest.approx(math.pi / 2)
-    assert s.move_candidates == 32 and float(s.pixel_sigma) == 2.0
+    assert s.move_candidates == 32
+    np.testing.assert_array_equal(s.rig.pixel_sigma, 2.0)
     assert float(s.move_mean) == 0.8 and float(s.move_std) == 0.2
     assert float(s.odometry_sigma_rel) == 0.01
     xy = s.formation_xy()
@@ -128,7 +129,7 @@ BAD = [
     ("ceiling.period", -1.0, r"`ceiling.period` must be positive; got -1.0"),
     ("ground.radius_x", 0.0, r"`ground.radius_x` must be nonzero"),
     ("ground.radius_y", "8", r"`ground.radius_y` must be a number; got '8'"),
-    ("pixel_sigma", -2.0, r"`Scenario\(pixel_sigma=...\)` must be nonnegative; got -2.0"),
+    ("pixel_sigma", -2.0, r"`Rig\(pixel_sigma=...\)` must be non-negative \(px\); got \[-2\. "),
     ("move_std", -0.1, r"`Scenario\(move_std=...\)` must be nonnegative; got -0.1"),
     ("odometry_sigma_rel", -0.01, r"odometry_sigma_rel=...\)` must be nonnegative"),
     ("move_mean", 0.0, r"`Scenario\(move_mean=...\)` must be positive; got 0.0"),
@@ -148,7 +149,8 @@ BAD = [
     ("cameras.overhead.camera_matrix", [[-600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0, 0, 1]],
      r"`cameras.overhead` is invalid: .*fx.*-600"),
     ("cameras.overhead.distortion_coefficients", [0.0, 1.0],
-     r"`cameras.overhead`: `distortion_coefficients` must be a list of 4 or 5 numbers"),
+     r"`cameras.overhead`: `distortion_coefficients` must hold 4 \(k1, k2, p1, p2\) or 5 "
+     r"\(k1, k2, p1, p2, k3\) coefficients for `distortion_model: radtan`; got \[0.0, 1.0\]"),
     ("cameras.overhead.image_width", [640], r"`cameras.overhead`: `image_width` must be a "
      r"positive integer"),
     ("cameras.ptz.zoom", 1.5, r"`cameras.ptz` is invalid: .*zoom.*1.5"),
@@ -200,11 +202,14 @@ def test_constructor_errors():
         Scenario.paper("zigzag")
     with pytest.raises(ValueError, match=r"`Scenario\(headings=...\)` must have shape \(3,\)"):
         Scenario.paper(headings=(0.0, 0.0))
-    with pytest.raises(ValueError, match=r"`Scenario\(ptz=...\)` must be a PTZCamera"):
-        Scenario.paper(ptz=PinholeCamera(500.0, 500.0, 320.0, 240.0))
+    # Any camera model serves C1 (a calibrated pinhole, a PTZ); a non-camera is refused.
+    assert isinstance(Scenario.paper(ptz=PinholeCamera(500.0, 500.0, 320.0, 240.0)).rig.ptz,
+                      PinholeCamera)  # fmt: skip
+    with pytest.raises(ValueError, match=r"`Rig\(ptz=...\)` must be a camera model"):
+        Scenario.paper(ptz="wide")
     with pytest.raises(ValueError, match=r"`Scenario\(move_candidates=...\)`"):
         Scenario.paper(move_candidates=True)
-    with pytest.raises(ValueError, match=r"`Scenario\(pixel_sigma=...\)` must be nonneg"):
+    with pytest.raises(ValueError, match=r"`Rig\(pixel_sigma=...\)` must be non-negative"):
         Scenario.paper(pixel_sigma=-1.0)
     # A YAML file with only a wrong value names the field.
     with pytest.raises(ValueError, match="pixel_sigma"):
@@ -215,7 +220,7 @@ def test_astype_float32():
     s = astype(Scenario.paper(), jnp.float32)
     leaves = [x for x in jax.tree.leaves(s) if eqx.is_array(x)]
     assert leaves and all(x.dtype == jnp.float32 for x in leaves)
-    assert s.strategy == "sequential" and s.overhead.image_size == (640, 480)
+    assert s.strategy == "sequential" and s.rig.overhead.image_size == (640, 480)
     back = astype(s, jnp.float64)
     assert all(x.dtype == jnp.float64 for x in jax.tree.leaves(back) if eqx.is_array(x))
 

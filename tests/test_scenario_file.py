@@ -42,10 +42,9 @@ def test_a_ceiling_below_the_floor_is_rejected_with_the_fields_and_the_gap(tmp_p
     assert "`ceiling` and `ground`" in text and "C1's initial position" in text
     assert "0.921875 m below" in text  # saddle ground at C1 (-1.118, 0): -0.078125 m
     # Above the robots but below the ground at the overhead robot's place: also refused.
-    s = Scenario.paper(ground=SaddleSurface(-8.0, 8.0), ceiling=FlatSurface(1.0),
-                       overhead_xy=(0.0, 6.0))  # fmt: skip
     with pytest.raises(ValueError, match=r"at `overhead_xy` \(x, y\) = \(0, 6\) m it is 1.25 m"):
-        check_ceiling_above_ground(s)
+        Scenario.paper(ground=SaddleSurface(-8.0, 8.0), ceiling=FlatSurface(1.0),
+                       overhead_xy=(0.0, 6.0))  # fmt: skip
     path = tmp_path / "low.yaml"
     path.write_text(yaml.safe_dump(d))
     with pytest.raises(FileFormatError, match=r"low.yaml`: Invalid scenario: .*ceiling"):
@@ -99,11 +98,11 @@ def test_scenario_files_write_cameras_in_the_camera_file_format(tmp_path):
                                         dist=(0.01, -0.002, 1e-4, 2e-4)))  # fmt: skip
     d = scenario_to_dict(s)
     for slot in ("overhead", "ptz", "omni2", "omni3"):
-        assert d["cameras"][slot] == camera_to_dict(getattr(s, slot))
+        assert d["cameras"][slot] == camera_to_dict(getattr(s.rig, slot))
     assert d["cameras"]["ptz"]["model"] == "ptz" and "camera_matrix" in d["cameras"]["omni3"]
-    save_camera(s.omni3, tmp_path / "omni.yaml", "yaml")
+    save_camera(s.rig.omni3, tmp_path / "omni.yaml", "yaml")
     d["cameras"]["omni2"] = yaml.safe_load((tmp_path / "omni.yaml").read_text())
-    assert bool(eqx.tree_equal(scenario_from_dict(d).omni2, s.omni3, typematch=True))
+    assert bool(eqx.tree_equal(scenario_from_dict(d).rig.omni2, s.rig.omni3, typematch=True))
 
 
 def test_the_old_constructor_form_and_presets_still_load(tmp_path):
@@ -120,10 +119,10 @@ cameras:
     path.write_text(text)
     s = load_scenario(path)
     assert bool(eqx.tree_equal(
-        s.overhead, PinholeCamera(650.5, 651.25, 320.1, 240.2, (0.01, -0.02, 1e-4, 2e-4, 0.003))
+        s.rig.overhead, PinholeCamera(650.5, 651.25, 320.1, 240.2, (0.01, -0.02, 1e-4, 2e-4, 0.003))
     ))  # fmt: skip
     assert bool(eqx.tree_equal(s.rig.ptz, paper_ptz_camera(pan=0.25)))
-    assert float(s.omni2.fx) == 190.0 and float(s.omni3.skew) == 0.1
+    assert float(s.rig.omni2.fx) == 190.0 and float(s.rig.omni3.skew) == 0.1
     # Written back in the camera dict format; reads back the same scenario.
     save_scenario(s, tmp_path / "new.yaml")
     new = yaml.safe_load((tmp_path / "new.yaml").read_text())

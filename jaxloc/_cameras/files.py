@@ -1,19 +1,62 @@
 r"""Camera files and jaxloc's one camera dict format.
 
 **The camera dict** ([`jaxloc.camera_to_dict`][] / [`jaxloc.camera_from_dict`][]) is the
-only form in which jaxloc writes a camera: in camera JSON/YAML files and in the `cameras:`
-entries of scenario files. Its keys follow OpenCV's calibration files, plus what OpenCV
-has no key for (SI units: pixels, radians):
+only form in which jaxloc writes a camera: in camera JSON/YAML/OpenCV files and in the
+`cameras:` entries of scenario files. Its keys follow OpenCV's calibration files, plus
+what OpenCV has no key for (SI units: pixels, radians):
 
 ```yaml
 model: pinhole                  # pinhole | omni | ptz
 image_width: 640
 image_height: 480
 camera_matrix: [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]     # omni: [[fx, skew, cx], ...]
-distortion_coefficients: [k1, k2, p1, p2, k3]             # omni: [k1, k2, p1, p2]
+distortion_model: radtan        # radtan | rational | equidistant (see below)
+distortion_coefficients: [k1, k2, p1, p2, k3]
 # omni only:  xi: 0.9, elevation_min: -0.2094, elevation_max: 0.5585   (rad)
-# ptz: no camera_matrix; pan, tilt, zoom, hfov_wide, hfov_tele (rad; zoom in [0, 1])
+# ptz: no camera_matrix; pan, tilt, zoom (rad; zoom in [0, 1]), and either the
+#      two-end model's hfov_wide, hfov_tele (rad) or a zoom_table (below)
 ```
+
+**Distortion.** `distortion_model` names what `distortion_coefficients` mean:
+
+| `distortion_model` | coefficients | cameras |
+|---|---|---|
+| `radtan` (default) | `[k1, k2, p1, p2, k3]` (4 = `k3` is 0) | pinhole, ptz |
+| `radtan` | `[k1, k2, p1, p2]` | omni |
+| `rational` | `[k1, k2, p1, p2, k3, k4, k5, k6]` (OpenCV's rational model) | pinhole, ptz |
+| `equidistant` | `[k1, k2, k3, k4]` (`cv2.fisheye`, Kalibr's `equidistant`) | all |
+
+`fisheye` is read as an alias of `equidistant`. jaxloc always writes
+`distortion_model`. Without it (OpenCV's own files) the model is `radtan`, except that 8
+coefficients are OpenCV's rational model and that `fisheye_model: 1` (what OpenCV's
+calibration sample writes for a `cv2.fisheye` calibration) means `equidistant`. A count
+that does not fit the model, or a `fisheye_model` that contradicts `distortion_model`,
+is an error naming the key, the value and the file: 4 coefficients are never guessed to
+be equidistant.
+
+**Zoom table** (a PTZ calibrated at several zoom steps, [`jaxloc.ZoomTable`][]; written
+by `jaxloc calibrate --model ptz`):
+
+```yaml
+model: ptz
+image_width: 640
+image_height: 480
+distortion_model: radtan
+pan: 0.0
+tilt: 0.0
+zoom: 0.0
+zoom_table:
+  zooms: [0.0, 0.5, 1.0]        # calibrated steps, strictly increasing in [0, 1]
+  fx: [420.1, 640.3, 981.0]     # one value per step (px), likewise fy, cx, cy
+  fy: [...]
+  cx: [...]
+  cy: [...]
+  distortion_coefficients: [[...], [...], [...]]   # one row per step, as distortion_model
+```
+
+Beside a `zoom_table`, the top-level `distortion_coefficients`, `hfov_wide` and
+`hfov_tele` are not used by the camera; they are not written, and reading them is an
+error. Every array of the table must have one entry per zoom step.
 
 `distortion_coefficients` may be omitted (no distortion), and so may every ptz key but
 the image size and omni's elevation band (the constructors' defaults). Without `model`
@@ -25,17 +68,20 @@ any other key is an error naming it and the file.
 **Camera files** ([`jaxloc.save_camera`][], [`jaxloc.load_camera`][]):
 
 - `json` / `yaml`: the camera dict.
-- `opencv`: `cv::FileStorage` YAML (`%YAML:1.0`, `!!opencv-matrix`), the same keys: what
-  `cv2.calibrateCamera` users write. A PTZ camera is written as its pinhole at the
-  current zoom. Read from files that OpenCV's calibration samples write, too.
+- `opencv`: `cv::FileStorage` YAML (`%YAML`, `!!opencv-matrix`), the same camera dict:
+  for a pinhole, what `cv2.calibrateCamera` users write (plus `distortion_model`). A PTZ
+  is written whole (`model: ptz`, its zoom table as a nested map), so that it reads
+  back exactly; save `ptz.pinhole()` for the pinhole at its current zoom. Read from
+  files that OpenCV's calibration samples write, too.
 - `kalibr`: a Kalibr camchain (`cam0`, `cam1`, ...; `camera_model: pinhole | omni`,
-  `distortion_model: radtan | none`), import and export only. Read with the rules of
-  Kalibr's own reader (`kalibr_common/ConfigReader.py`): cameras named `cam0` ...
-  `cam<n-1>`, intrinsics and coefficient counts per model, resolution two integers,
+  `distortion_model: radtan | equidistant | none`), import and export. Read with the
+  rules of Kalibr's own reader (`kalibr_common/ConfigReader.py`): cameras named `cam0`
+  ... `cam<n-1>`, intrinsics and coefficient counts per model, resolution two integers,
   `rostopic` a string, `T_cn_cnm1` a 4x4 rigid transform. Written with a `rostopic` for
   every camera and `T_cn_cnm1` for every camera after the first
-  ([`jaxloc.save_camchain`][]). Kalibr's other models (`equidistant`, `fov`, `eucm`,
-  `ds`) are refused, naming the model, the camera and the file.
+  ([`jaxloc.save_camchain`][]). Kalibr's other models (`fov`, `eucm`, `ds`) are refused,
+  naming the model, the camera and the file; so is writing a camera Kalibr cannot hold
+  (see [`camera_to_kalibr`][]).
 
 A scenario file's `cameras:` entries are read by [`camera_from_spec`][]: a camera dict, a
 preset name (`paper_overhead`, `paper_ptz`, `paper_omni`), a preset with overrides
@@ -67,24 +113,47 @@ from .._core.files import (
     short_key,
     syntax_of,
 )
-from .models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera
+from .distortion import DISTORTION_MODELS, EQUIDISTANT, RADTAN
+from .models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera, ZoomTable
 from .presets import paper_omni_camera, paper_overhead_camera, paper_ptz_camera
 
 
 FORMATS = ("opencv", "json", "yaml", "kalibr")
 MODELS = ("pinhole", "omni", "ptz")
 _SIZE_KEYS = ("model", "image_width", "image_height")
+_DIST_KEYS = ("distortion_model", "distortion_coefficients")
 #: The keys of the camera dict of each model (see the module docstring).
 CAMERA_KEYS = {
-    "pinhole": _SIZE_KEYS + ("camera_matrix", "distortion_coefficients"),
-    "omni": _SIZE_KEYS
-    + ("camera_matrix", "distortion_coefficients", "xi", "elevation_min", "elevation_max"),
-    "ptz": _SIZE_KEYS + ("distortion_coefficients", "pan", "tilt", "zoom", "hfov_wide",
-                         "hfov_tele"),
+    "pinhole": _SIZE_KEYS + ("camera_matrix",) + _DIST_KEYS,
+    "omni": _SIZE_KEYS + ("camera_matrix",) + _DIST_KEYS
+    + ("xi", "elevation_min", "elevation_max"),
+    "ptz": _SIZE_KEYS + _DIST_KEYS + ("pan", "tilt", "zoom", "hfov_wide", "hfov_tele",
+                                      "zoom_table"),
 }  # fmt: skip
+#: The keys of a ptz camera dict's `zoom_table` (all but `distortion_coefficients`
+#: required).
+ZOOM_TABLE_KEYS = ("zooms", "fx", "fy", "cx", "cy", "distortion_coefficients")
+#: The ptz keys a `zoom_table` replaces (the two-end model's).
+_TWO_END_KEYS = ("distortion_coefficients", "hfov_wide", "hfov_tele")
+#: A camera dict's `distortion_model` values: the camera's `distortion` and the
+#: coefficient counts each takes, per camera model (see the module docstring).
+DICT_DISTORTIONS = {
+    "radtan": (RADTAN, {"pinhole": (4, 5), "ptz": (4, 5), "omni": (4,)}),
+    "rational": (RADTAN, {"pinhole": (8,), "ptz": (8,)}),
+    "equidistant": (EQUIDISTANT, {"pinhole": (4,), "ptz": (4,), "omni": (4,)}),
+}
+#: Other names read as a `distortion_model`.
+DISTORTION_ALIASES = {"fisheye": "equidistant"}
+_COEFFICIENTS = {
+    ("radtan", 4): "k1, k2, p1, p2",
+    ("radtan", 5): "k1, k2, p1, p2, k3",
+    ("rational", 8): "k1, k2, p1, p2, k3, k4, k5, k6",
+    ("equidistant", 4): "k1, k2, k3, k4",
+}
 #: Informational keys a camera file may carry, read and ignored: jaxloc's calibration
 #: report (`rms_px`, `num_images`) and what OpenCV's calibration samples write beside
-#: the camera (`fisheye_model` must be 0: jaxloc has no OpenCV fisheye model).
+#: the camera (`fisheye_model: 1` marks a `cv2.fisheye` calibration: read as
+#: `distortion_model: equidistant`).
 INFO_KEYS = (
     "rms_px", "num_images", "calibration_time", "nframes", "nr_of_frames", "board_width",
     "board_height", "square_size", "marker_size", "aspectRatio", "fix_aspect_ratio",
@@ -110,6 +179,17 @@ def model_of(camera: AbstractCamera) -> str:
     )
 
 
+def distortion_model_of(camera: AbstractCamera) -> str:
+    """The camera dict's `distortion_model` of `camera`: `"radtan"`, `"rational"` (a
+    radtan camera with 8 coefficients, in its zoom table for a PTZ) or
+    `"equidistant"`."""
+    if camera.distortion == EQUIDISTANT:
+        return "equidistant"
+    table = getattr(camera, "zoom_table", None)
+    n = (camera.dist if table is None else table.dist).shape[-1]
+    return "rational" if n == 8 else "radtan"
+
+
 # --------------------------------------------------------------------------------------
 # Values.
 
@@ -124,9 +204,9 @@ def _number(where: str, x: Any) -> float:
     return float(x)
 
 
-def _numbers(where: str, x: Any, counts: Sequence[int]) -> list[float]:
-    """A flat list of finite numbers of one of the lengths `counts` (an OpenCV column or
-    row matrix is flattened)."""
+def _numbers(where: str, x: Any, counts: Sequence[int] | None) -> list[float]:
+    """A flat list of finite numbers of one of the lengths `counts` (any length >= 1 if
+    `None`; an OpenCV column or row matrix is flattened)."""
     if isinstance(x, np.ndarray) and x.ndim == 2 and 1 in x.shape:
         x = x.reshape(-1).tolist()
     elif isinstance(x, list) and x and all(isinstance(r, list) and len(r) == 1 for r in x):
@@ -135,8 +215,11 @@ def _numbers(where: str, x: Any, counts: Sequence[int]) -> list[float]:
         x = x[0]  # a row written as nested lists
     if isinstance(x, np.ndarray):
         x = x.tolist()
-    want = " or ".join(str(n) for n in counts)
-    if not isinstance(x, list | tuple) or len(x) not in counts:
+    if counts is None:
+        if not isinstance(x, list | tuple) or not x:
+            raise ValueError(f"{where} must be a list of numbers; got {short(x)}.")
+    elif not isinstance(x, list | tuple) or len(x) not in counts:
+        want = " or ".join(str(n) for n in counts)
         raise ValueError(f"{where} must be a list of {want} numbers; got {short(x)}.")
     return [_number(f"{where}[{i}]", v) for i, v in enumerate(x)]
 
@@ -166,7 +249,10 @@ def _size(where: str, x: Any) -> int:
 def camera_to_dict(camera: AbstractCamera) -> dict[str, Any]:
     """The camera dict of `camera` (see the module docstring): plain Python values,
     ready for JSON or YAML; [`jaxloc.camera_from_dict`][] reads it back exactly
-    (float64; a float32 camera is written as the float64 values of its leaves)."""
+    (float64; a float32 camera is written as the float64 values of its leaves), the
+    distortion model and a PTZ's zoom table included. (With a zoom table, the PTZ's
+    unused two-end fields `hfov_wide`, `hfov_tele` and `dist` are not written: they
+    read back as the constructor's defaults.)"""
     model = model_of(camera)
     w, h = camera.image_size
     d: dict[str, Any] = {"model": model, "image_width": int(w), "image_height": int(h)}
@@ -176,12 +262,26 @@ def camera_to_dict(camera: AbstractCamera) -> dict[str, Any]:
         fx, fy, cx, cy, skew = (float(camera.fx), float(camera.fy), float(camera.cx),
                                 float(camera.cy), float(camera.skew))  # fmt: skip
         d["camera_matrix"] = [[fx, skew, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]
-    dist = np.asarray(camera.dist, np.float64)
-    d["distortion_coefficients"] = dist.tolist()
+    d["distortion_model"] = distortion_model_of(camera)
+    table = camera.zoom_table if model == "ptz" else None
+    if table is None:
+        d["distortion_coefficients"] = np.asarray(camera.dist, np.float64).tolist()
     names = {"omni": ("xi", "elevation_min", "elevation_max"),
-             "ptz": ("pan", "tilt", "zoom", "hfov_wide", "hfov_tele")}.get(model, ())  # fmt: skip
+             "ptz": ("pan", "tilt", "zoom") + (("hfov_wide", "hfov_tele") if table is None
+                                               else ())}.get(model, ())  # fmt: skip
     for name in names:
         d[name] = float(getattr(camera, name))
+    if table is not None:
+        d["zoom_table"] = zoom_table_to_dict(table)
+    return d
+
+
+def zoom_table_to_dict(table: ZoomTable) -> dict[str, Any]:
+    """The `zoom_table` of a ptz camera dict (see the module docstring), float64 values
+    as plain lists."""
+    d = {k: np.asarray(getattr(table, k), np.float64).tolist()
+         for k in ("zooms", "fx", "fy", "cx", "cy")}  # fmt: skip
+    d["distortion_coefficients"] = np.asarray(table.dist, np.float64).tolist()
     return d
 
 
@@ -194,7 +294,9 @@ def camera_from_dict(d: Any, where: str = "`camera`") -> AbstractCamera:
     - `where`: how messages name it, verbatim (e.g. ``"camera file `cam.json`"``).
 
     Raises `ValueError` naming `where`, the key and the bad value (bounded): an unknown
-    key, a missing one, a wrong type, or a value the camera's constructor refuses.
+    key, a missing one, a wrong type, a distortion model that does not fit its
+    coefficients, an inconsistent zoom table, or a value the camera's constructor
+    refuses.
     """
     if not isinstance(d, dict):
         raise ValueError(f"{where} must be a mapping; got {short(d)}.")
@@ -202,11 +304,6 @@ def camera_from_dict(d: Any, where: str = "`camera`") -> AbstractCamera:
     if not isinstance(model, str) or model not in MODELS:
         raise ValueError(f"{where}: `model` must be one of {MODELS}; got {short(model)}.")
     check_keys(d, CAMERA_KEYS[model] + INFO_KEYS, where=where, listed=CAMERA_KEYS[model])
-    if d.get("fisheye_model", 0):
-        raise ValueError(
-            f"{where} is an OpenCV fisheye calibration (`fisheye_model: "
-            f"{short(d['fisheye_model'])}`); jaxloc has no fisheye (equidistant) model yet."
-        )
     for key in ("image_width", "image_height") + (("xi",) if model == "omni" else ()):
         if key not in d:
             raise ValueError(f"{where} is missing `{key}`.")
@@ -216,14 +313,83 @@ def camera_from_dict(d: Any, where: str = "`camera`") -> AbstractCamera:
     try:
         return build[model](d, size, where)
     except ValueError as e:
-        if str(e).startswith(where):
+        if where in str(e):
             raise
         raise ValueError(f"{where} is invalid: {e}") from None
 
 
-def _dist(d: dict, where: str, counts: tuple[int, ...]) -> list[float] | None:
-    v = d.get("distortion_coefficients")
-    return None if v is None else _numbers(f"{where}: `distortion_coefficients`", v, counts)
+def _distortion_name(d: dict, where: str, model: str) -> str | None:
+    """The dict's `distortion_model` (aliases resolved; `fisheye_model: 1` read as
+    `equidistant`), checked against the camera `model`; `None` if it names none."""
+    name = d.get("distortion_model")
+    if name is not None:
+        known = tuple(DICT_DISTORTIONS) + tuple(DISTORTION_ALIASES)
+        if not isinstance(name, str) or name not in known:
+            raise ValueError(
+                f"{where}: `distortion_model` must be one of {', '.join(DICT_DISTORTIONS)} "
+                f"(or `fisheye`, read as `equidistant`); got {short(name)}."
+            )
+        name = DISTORTION_ALIASES.get(name, name)
+        if model not in DICT_DISTORTIONS[name][1]:
+            takes = [n for n, (_, counts) in DICT_DISTORTIONS.items() if model in counts]
+            raise ValueError(
+                f"{where}: `distortion_model: {name}` is not a distortion of the {model} "
+                f"camera; it takes {', '.join(takes)}."
+            )
+    fisheye = d.get("fisheye_model", 0)
+    if isinstance(fisheye, bool) or fisheye not in (0, 1):
+        raise ValueError(f"{where}: `fisheye_model` must be 0 or 1; got {short(fisheye)}.")
+    if fisheye:
+        if model == "omni" or name not in (None, "equidistant"):
+            what = f"`distortion_model: {name}`" if name else "an omni camera"
+            raise ValueError(
+                f"{where} is marked `fisheye_model: 1` (a cv2.fisheye calibration, "
+                f"equidistant distortion) but is {what}."
+            )
+        name = "equidistant"
+    return name
+
+
+def _dist(
+    d: dict, where: str, model: str, key: str = "distortion_coefficients"
+) -> tuple[str, list[float] | None]:
+    """The camera dict's distortion model name (`radtan`, `rational` or `equidistant`)
+    and the coefficients under `key` (`None` when absent), checked against each other
+    (see the module docstring)."""
+    name = _distortion_name(d, where, model)
+    v = d.get(key)
+    if v is None:
+        return name or "radtan", None
+    if name is None:  # OpenCV's rule: the count says the model
+        coeffs = _numbers(f"{where}: `{key}`", v, _RADTAN_COUNTS[model])
+        return ("rational" if len(coeffs) == 8 else "radtan"), coeffs
+    return name, _coefficients(f"{where}: `{key}`", v, name, model)
+
+
+#: Coefficient counts without a `distortion_model` (OpenCV's files), per camera model.
+_RADTAN_COUNTS = {"pinhole": (4, 5, 8), "ptz": (4, 5, 8), "omni": (4,)}
+
+
+def _coefficients(where: str, v: Any, name: str, model: str) -> list[float]:
+    """The coefficients `v` of distortion model `name` of a `model` camera, or a
+    `ValueError` saying what `name` takes."""
+    counts = DICT_DISTORTIONS[name][1][model]
+    try:
+        return _numbers(where, v, counts)
+    except ValueError:
+        want = " or ".join(f"{n} ({_COEFFICIENTS[(name, n)]})" for n in counts)
+        raise ValueError(
+            f"{where} must hold {want} coefficients for `distortion_model: {name}`; got "
+            f"{short(v)}."
+        ) from None
+
+
+def _stored(name: str, coeffs: list[float] | None, model: str) -> tuple[str, list[float]]:
+    """The camera's static `distortion` and its `dist` as the model stores it: zeros
+    when absent, radtan's 4 coefficients with `k3 = 0` for a perspective camera."""
+    n = {"radtan": 4 if model == "omni" else 5, "rational": 8, "equidistant": 4}[name]
+    coeffs = [0.0] * n if coeffs is None else coeffs
+    return DICT_DISTORTIONS[name][0], coeffs + [0.0] * (n - len(coeffs))
 
 
 def _camera_matrix(d: dict, where: str) -> np.ndarray:
@@ -234,7 +400,8 @@ def _camera_matrix(d: dict, where: str) -> np.ndarray:
 
 def _pinhole_from_dict(d: dict, size: tuple[int, int], where: str) -> PinholeCamera:
     K = _camera_matrix(d, where)
-    return PinholeCamera.from_opencv(K, _dist(d, where, (4, 5)), size)
+    distortion, dist = _stored(*_dist(d, where, "pinhole"), "pinhole")
+    return PinholeCamera.from_opencv(K, dist, size, distortion=distortion)
 
 
 def _omni_from_dict(d: dict, size: tuple[int, int], where: str) -> OmniCamera:
@@ -244,19 +411,88 @@ def _omni_from_dict(d: dict, size: tuple[int, int], where: str) -> OmniCamera:
             f"{where}: `camera_matrix` must be [[fx, skew, cx], [0, fy, cy], [0, 0, 1]]; got "
             f"{np.array2string(K)}."
         )
-    dist = _dist(d, where, (4,)) or [0.0] * 4
+    distortion, dist = _stored(*_dist(d, where, "omni"), "omni")
     band = {k: _number(f"{where}: `{k}`", d[k]) for k in ("elevation_min", "elevation_max")
             if k in d}  # fmt: skip
-    return OmniCamera.from_opencv(K, dist, _number(f"{where}: `xi`", d["xi"]), size, **band)
+    return OmniCamera.from_opencv(K, dist, _number(f"{where}: `xi`", d["xi"]),
+                                  size, distortion=distortion, **band)  # fmt: skip
 
 
 def _ptz_from_dict(d: dict, size: tuple[int, int], where: str) -> PTZCamera:
     names = ("pan", "tilt", "zoom", "hfov_wide", "hfov_tele")
     kwargs: dict[str, Any] = {k: _number(f"{where}: `{k}`", d[k]) for k in names if k in d}
-    dist = _dist(d, where, (4, 5))
-    if dist is not None:
-        kwargs["dist"] = dist + [0.0] * (5 - len(dist))
-    return PTZCamera(image_size=size, **kwargs)
+    if "zoom_table" not in d:
+        distortion, dist = _stored(*_dist(d, where, "ptz"), "ptz")
+        return PTZCamera(image_size=size, dist=dist, distortion=distortion, **kwargs)
+    for key in _TWO_END_KEYS:
+        if key in d:
+            raise ValueError(
+                f"{where}: `{key}` is not used beside a `zoom_table` (the table holds the "
+                "intrinsics and distortion of every zoom step); remove it."
+            )
+    name, table = _zoom_table_from_dict(d["zoom_table"], where, _distortion_name(d, where, "ptz"))
+    return PTZCamera(image_size=size, zoom_table=table, distortion=DICT_DISTORTIONS[name][0],
+                     **kwargs)  # fmt: skip
+
+
+def _zoom_table_from_dict(t: Any, where: str, name: str | None) -> tuple[str, ZoomTable]:
+    """The distortion model name and the [`jaxloc.ZoomTable`][] of a ptz camera dict's
+    `zoom_table` (see the module docstring), each array checked against `zooms`."""
+    check_keys(t, ZOOM_TABLE_KEYS, where=f"{where}: `zoom_table`")
+    for key in ZOOM_TABLE_KEYS[:5]:
+        if key not in t:
+            raise ValueError(f"{where}: `zoom_table` is missing `{key}`.")
+    zooms = _numbers(f"{where}: `zoom_table.zooms`", t["zooms"], None)
+    n = len(zooms)
+    if n < 2 or not all(0.0 <= z <= 1.0 for z in zooms) or not all(
+        a < b for a, b in zip(zooms, zooms[1:])
+    ):
+        raise ValueError(
+            f"{where}: `zoom_table.zooms` must be at least two zoom steps, strictly "
+            f"increasing in [0, 1]; got {short(zooms)}."
+        )
+
+    def per_step(key: str, got: int) -> None:
+        if got != n:
+            raise ValueError(
+                f"{where}: `zoom_table.{key}` has {got} entries but `zoom_table.zooms` has {n} "
+                "zoom steps; the table needs one entry per step."
+            )
+
+    columns = {}
+    for key in ("fx", "fy", "cx", "cy"):
+        columns[key] = _numbers(f"{where}: `zoom_table.{key}`", t[key], None)
+        per_step(key, len(columns[key]))
+    rows = t.get("distortion_coefficients")
+    at = f"{where}: `zoom_table.distortion_coefficients`"
+
+    def row(i: int) -> str:
+        return f"{where}: `zoom_table.distortion_coefficients[{i}]`"
+
+    if rows is None:
+        name = name or "radtan"
+        dist = [_stored(name, None, "ptz")[1]] * n
+    else:
+        if isinstance(rows, np.ndarray):
+            rows = rows.tolist()
+        if not isinstance(rows, list) or not all(isinstance(r, list) for r in rows):
+            raise ValueError(
+                f"{at} must be one row of coefficients per zoom step; got {short(rows)}."
+            )
+        per_step("distortion_coefficients", len(rows))
+        if name is None:  # OpenCV's rule: the count says the model
+            rows = [_numbers(row(i), r, _RADTAN_COUNTS["ptz"]) for i, r in enumerate(rows)]
+            name = "rational" if len(rows[0]) == 8 else "radtan"
+        else:
+            rows = [_coefficients(row(i), r, name, "ptz") for i, r in enumerate(rows)]
+        if len({len(r) for r in rows}) != 1:
+            raise ValueError(
+                f"{at} must have the same number of coefficients at every zoom step; got rows "
+                f"of {sorted({len(r) for r in rows})}."
+            )
+        dist = [_stored(name, r, "ptz")[1] for r in rows]
+    return name, ZoomTable(zooms, columns["fx"], columns["fy"], columns["cx"], columns["cy"],
+                           np.array(dist, np.float64))  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------
@@ -265,11 +501,19 @@ def _ptz_from_dict(d: dict, size: tuple[int, int], where: str) -> PTZCamera:
 
 def camera_fields(camera: AbstractCamera) -> dict[str, Any]:
     """The constructor-argument form of `camera` (`{type: pinhole, fx: ..., ...}`), which
-    scenario files used before the camera dict; kept to apply presets' overrides."""
+    scenario files used before the camera dict; kept to apply presets' overrides. A
+    PTZ's `zoom_table` is in the camera dict's layout (omitted when `None`)."""
     d: dict[str, Any] = {"type": model_of(camera)}
     for f in dataclasses.fields(camera):
         v = getattr(camera, f.name)
-        d[f.name] = list(v) if isinstance(v, tuple) else np.asarray(v, np.float64).tolist()
+        if v is None:
+            continue
+        if isinstance(v, ZoomTable):
+            d[f.name] = zoom_table_to_dict(v)
+        elif isinstance(v, str):
+            d[f.name] = v
+        else:
+            d[f.name] = list(v) if isinstance(v, tuple) else np.asarray(v, np.float64).tolist()
     return d
 
 
@@ -291,6 +535,14 @@ def camera_from_fields(d: dict, where: str) -> AbstractCamera:
                 raise ValueError(f"`{where}.image_size` must be two positive integers "
                                  f"[width, height]; got {short(v)}.")  # fmt: skip
             kwargs[k] = (int(v[0]), int(v[1]))
+        elif k == "distortion":
+            if not isinstance(v, str) or v not in DISTORTION_MODELS:
+                raise ValueError(f"`{where}.distortion` must be one of {DISTORTION_MODELS}; "
+                                 f"got {short(v)}.")  # fmt: skip
+            kwargs[k] = v
+        elif k == "zoom_table":
+            name = "equidistant" if d.get("distortion") == EQUIDISTANT else None
+            kwargs[k] = _zoom_table_from_dict(v, f"`{where}`", name)[1]
         elif k != "type":
             kwargs[k] = (_numbers(f"`{where}.{k}`", v, (len(v),)) if isinstance(v, list | tuple)
                          else _number(f"`{where}.{k}`", v))  # fmt: skip
@@ -365,29 +617,52 @@ def camera_to_kalibr(
 
     **Arguments:**
 
-    - `camera`: a pinhole, a PTZ (its pinhole at the current zoom) or an omni camera.
-      Kalibr's `radtan` has no `k3` and its `omni` no skew: a camera with either nonzero
-      raises `ValueError`.
+    - `camera`: a pinhole, a PTZ without a zoom table (its pinhole at the current zoom)
+      or an omni camera. Its distortion is written as Kalibr's `equidistant`
+      (`[k1, k2, k3, k4]`), `radtan` (`[k1, k2, r1, r2]`) or, when every radtan
+      coefficient is zero, `none`. An omni camera with equidistant distortion is
+      written as `camera_model: omni, distortion_model: equidistant`, the pair of
+      Kalibr's C++ `EquidistantOmniProjection`; Kalibr's own Python reader
+      (`ConfigReader.py`, "Omni with equidistant model not yet supported!") will not
+      load it, jaxloc does. Kalibr cannot hold the rest, which raises `ValueError`
+      naming the camera: a nonzero `k3` (Kalibr's radtan has none), OpenCV's rational
+      model (8 coefficients), an omni skew, a PTZ with a zoom table (a Kalibr camera has
+      one set of intrinsics).
     - `name`: the camera's name in the chain (`cam0`, `cam1`, ...).
     - `rostopic`: its image topic (Kalibr requires one); default `/<name>/image_raw`.
     - `T_cn_cnm1`: for a camera after the first, the 4x4 transform from the previous
       camera's frame into this one's (Kalibr's `T_cn_cnm1`).
     """
+    at = f"`{short_key(name, 40)}`"
     if isinstance(camera, PTZCamera):
+        if camera.zoom_table is not None:
+            raise ValueError(
+                f"Camera {at} is a PTZ camera with a zoom table, which has no Kalibr form (a "
+                "Kalibr camera has one set of intrinsics); save it as json, yaml or opencv, "
+                "or save `camera.pinhole()`, its pinhole at the current zoom."
+            )
         camera = camera.pinhole()
     if isinstance(camera, PinholeCamera):
         d = np.asarray(camera.dist, np.float64)
-        if d[4] != 0:
+        if camera.distortion == RADTAN and d.shape[0] == 8:
             raise ValueError(
-                f"Kalibr's `radtan` distortion has no k3; this camera has k3 = {float(d[4])!r}. "
-                "Save it in the OpenCV format, or calibrate with `fix_k3=True`."
+                f"Camera {at} has OpenCV's rational distortion (8 coefficients), which "
+                "Kalibr has no model for; save it as opencv, json or yaml, or calibrate "
+                "without `--rational`."
+            )
+        if camera.distortion == RADTAN and d[4] != 0:
+            raise ValueError(
+                f"Kalibr's `radtan` distortion has no k3; camera {at} has k3 = "
+                f"{float(d[4])!r}. Save it in the OpenCV format, or calibrate with "
+                "`fix_k3=True`."
             )
         intrinsics = [float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)]
         entry = {"camera_model": "pinhole", "intrinsics": intrinsics}
     elif isinstance(camera, OmniCamera):
         if float(camera.skew) != 0:
             raise ValueError(
-                f"Kalibr's `omni` model has no skew; this camera has skew = {float(camera.skew)!r}."
+                f"Kalibr's `omni` model has no skew; camera {at} has skew = "
+                f"{float(camera.skew)!r}."
             )
         intrinsics = [float(camera.xi), float(camera.fx), float(camera.fy), float(camera.cx),
                       float(camera.cy)]  # fmt: skip
@@ -395,8 +670,12 @@ def camera_to_kalibr(
         d = np.asarray(camera.dist, np.float64)
     else:
         raise ValueError(f"`camera` of type {type(camera).__name__} has no Kalibr form.")
-    entry["distortion_model"] = "radtan"
-    entry["distortion_coeffs"] = d[:4].tolist()
+    if camera.distortion == EQUIDISTANT:
+        entry["distortion_model"], entry["distortion_coeffs"] = "equidistant", d.tolist()
+    elif np.all(d == 0):
+        entry["distortion_model"], entry["distortion_coeffs"] = "none", []
+    else:
+        entry["distortion_model"], entry["distortion_coeffs"] = "radtan", d[:4].tolist()
     entry["resolution"] = _kalibr_resolution(camera)
     entry["rostopic"] = f"/{name}/image_raw" if rostopic is None else str(rostopic)
     if T_cn_cnm1 is not None:
@@ -468,9 +747,14 @@ def camera_from_kalibr(
     """The camera `name` (default `cam0`) of a Kalibr camchain mapping, read with the
     rules of Kalibr's `ConfigReader` (see the module docstring).
 
+    Reads `camera_model` `pinhole` and `omni` with `distortion_model` `radtan`,
+    `equidistant` or `none`. `omni` with `equidistant` is read too (Kalibr's C++
+    `EquidistantOmniProjection`), although Kalibr's own Python reader refuses that pair
+    ("Omni with equidistant model not yet supported!").
+
     Raises `ValueError` naming `where` (used verbatim in messages), the camera and the bad
-    field; Kalibr models jaxloc does not have (`equidistant`, `fov`, `eucm`, `ds`) are
-    refused by name."""
+    field; Kalibr models jaxloc does not have (`fov`, `eucm`, `ds`) are refused by
+    name."""
     if not isinstance(d, dict) or not d:
         raise ValueError(f"{where} must be a Kalibr camchain mapping (cam0: ...); got {short(d)}.")
     _check_chain_names(d, where)
@@ -486,22 +770,22 @@ def camera_from_kalibr(
         if key == "distortion_model":
             _check_kalibr_models(e["camera_model"], e["distortion_model"], at)
     _check_kalibr_extras(e, at, len(d))
-    model, intr, coeffs = _kalibr_intrinsics(e, at)
+    model, dist_model, intr, coeffs = _kalibr_intrinsics(e, at)
     res = e["resolution"]
     if not isinstance(res, list) or len(res) != 2:
         raise ValueError(f"{at}: `resolution` must be [width, height]; got {short(res)}.")
     size = (_size(f"{at}: `resolution[0]`", res[0]), _size(f"{at}: `resolution[1]`", res[1]))
     try:
         if model == "pinhole":
-            return PinholeCamera(*intr, [*coeffs, 0.0], size)
-        return OmniCamera.from_kalibr(intr, coeffs, size)
+            return PinholeCamera.from_kalibr(intr, dist_model, coeffs, size)
+        return OmniCamera.from_kalibr(intr, coeffs, size, distortion_model=dist_model)
     except ValueError as err:
         raise ValueError(f"{at} is invalid: {err}") from None
 
 
-def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, list[float], list[float]]:
-    """Camera model, intrinsics and radtan coefficients (zeros for `none`) of a camchain
-    entry, checked as Kalibr's `checkIntrinsics` and `checkDistortion` do."""
+def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, str, list[float], list[float]]:
+    """Camera model, distortion model, intrinsics and coefficients (`[]` for `none`) of a
+    camchain entry, checked as Kalibr's `checkIntrinsics` and `checkDistortion` do."""
     model, dist_model = e["camera_model"], e["distortion_model"]
     layout = KALIBR_INTRINSICS[model]
     intr = _numbers(f"{at}: `intrinsics` {layout}", e["intrinsics"], (layout.count(",") + 1,))
@@ -517,8 +801,9 @@ def _kalibr_intrinsics(e: dict, at: str) -> tuple[str, list[float], list[float]]
         if coeffs != []:
             raise ValueError(f"{at}: `distortion_coeffs` must be [] for distortion model "
                              f"`none` (Kalibr's rule); got {short(coeffs)}.")  # fmt: skip
-        return model, intr, [0.0] * 4
-    return model, intr, _numbers(f"{at}: `distortion_coeffs`", coeffs, (4,))
+        return model, dist_model, intr, []
+    n = KALIBR_DISTORTIONS[dist_model]
+    return model, dist_model, intr, _numbers(f"{at}: `distortion_coeffs`", coeffs, (n,))
 
 
 def _check_kalibr_models(model: Any, dist_model: Any, at: str) -> None:
@@ -532,9 +817,9 @@ def _check_kalibr_models(model: Any, dist_model: Any, at: str) -> None:
     if model not in ("pinhole", "omni"):
         raise ValueError(f"{at}: `camera_model: {model}` is not supported by jaxloc (Kalibr's "
                          "`pinhole` and `omni` are).")  # fmt: skip
-    if dist_model not in ("radtan", "none"):
+    if dist_model not in ("radtan", "equidistant", "none"):
         raise ValueError(f"{at}: `distortion_model: {dist_model}` is not supported by jaxloc "
-                         "(Kalibr's `radtan` and `none` are).")  # fmt: skip
+                         "(Kalibr's `radtan`, `equidistant` and `none` are).")  # fmt: skip
 
 
 def _check_kalibr_extras(e: dict, at: str, n_cameras: int) -> None:
@@ -559,14 +844,22 @@ def _check_kalibr_extras(e: dict, at: str, n_cameras: int) -> None:
 
 
 def _opencv_text(d: dict[str, Any]) -> str:
-    """`cv::FileStorage` YAML of a camera dict (matrices as `!!opencv-matrix`)."""
+    """`cv::FileStorage` YAML of a camera dict (matrices as `!!opencv-matrix`, vectors as
+    one-row matrices, a nested mapping such as `zoom_table` as a FileStorage map)."""
     fs = cv2.FileStorage(
         "camera.yaml",
         cv2.FILE_STORAGE_WRITE | cv2.FILE_STORAGE_MEMORY | cv2.FILE_STORAGE_FORMAT_YAML,
     )
+    _opencv_write(fs, d)
+    return fs.releaseAndGetString()
+
+
+def _opencv_write(fs: Any, d: dict[str, Any]) -> None:
     for k, v in d.items():
-        if k == "distortion_coefficients":
-            fs.write(k, np.asarray(v, np.float64).reshape(1, -1))
+        if isinstance(v, dict):
+            fs.startWriteStruct(k, cv2.FileNode_MAP)
+            _opencv_write(fs, v)
+            fs.endWriteStruct()
         elif isinstance(v, str):
             fs.write(k, v)
         elif isinstance(v, bool | int | np.integer):
@@ -574,8 +867,8 @@ def _opencv_text(d: dict[str, Any]) -> str:
         elif isinstance(v, float | np.floating):
             fs.write(k, float(v))
         else:
-            fs.write(k, np.asarray(v, np.float64))
-    return fs.releaseAndGetString()
+            m = np.asarray(v, np.float64)
+            fs.write(k, m.reshape(1, -1) if m.ndim == 1 else m)
 
 
 def _opencv_node(node: Any) -> Any:
@@ -587,11 +880,12 @@ def _opencv_node(node: Any) -> Any:
         return float(node.real())
     if node.isSeq():
         return [_opencv_node(node.at(i)) for i in range(node.size())]
-    m = node.mat()  # an `!!opencv-matrix` is a map to FileStorage
-    if m is not None:
-        return np.asarray(m)
     if node.isMap():
-        return {k: _opencv_node(node.getNode(k)) for k in node.keys()}
+        keys = node.keys()
+        if {"dt", "data"} <= set(keys):  # an `!!opencv-matrix` is a map to FileStorage
+            m = node.mat()
+            return None if m is None else np.asarray(m)
+        return {k: _opencv_node(node.getNode(k)) for k in keys}
     return None
 
 
@@ -632,9 +926,10 @@ def save_camera(
       [`jaxloc.OmniCamera`][].
     - `path`: destination.
     - `format`: `"opencv"` (`cv::FileStorage` YAML, as `cv2.calibrateCamera` users
-      write it; a PTZ camera as its pinhole at the current zoom), `"json"` or `"yaml"`
-      (the camera dict) or `"kalibr"` (a camchain with one camera, `cam0`). Default:
-      `json` for a `.json` suffix, else `opencv`.
+      write it), `"json"` or `"yaml"`: the camera dict, exact for every model (a PTZ
+      whole, with its zoom table); or `"kalibr"` (a camchain with one camera, `cam0`;
+      see [`camera_to_kalibr`][] for what Kalibr cannot hold). Default: `json` for a
+      `.json` suffix, else `opencv`.
     - `extra`: informational keys to store beside the camera (`INFO_KEYS`, e.g.
       `rms_px`; not in the Kalibr format).
     """
@@ -649,8 +944,6 @@ def save_camera(
     if format == "kalibr":
         atomic_write(path, dumps_yaml(camera_to_kalibr(camera)))
         return
-    if format == "opencv" and isinstance(camera, PTZCamera):
-        camera = camera.pinhole()
     d = {**camera_to_dict(camera), **(extra or {})}
     text = {"json": dumps_json, "yaml": dumps_yaml, "opencv": _opencv_text}[format](d)
     atomic_write(path, text)
@@ -663,13 +956,13 @@ def save_camchain(
     rostopics: Sequence[str] | None = None,
 ) -> None:
     """Write a Kalibr camchain YAML of `cameras` (`cam0`, `cam1`, ...), atomically; see
-    [`camchain_to_kalibr`][] for `T_cn_cnm1` and `rostopics`."""
+    `jaxloc._cameras.files.camchain_to_kalibr` for `T_cn_cnm1` and `rostopics`."""
     atomic_write(path, dumps_yaml(camchain_to_kalibr(cameras, T_cn_cnm1, rostopics)))
 
 
 def read_camera_mapping(path: str | os.PathLike) -> dict[str, Any]:
     """The mapping in a camera file: OpenCV `FileStorage` YAML (starts with `%YAML`),
-    JSON (`.json`) or YAML. Raises [`jaxloc._core.files.FileFormatError`][] naming the
+    JSON (`.json`) or YAML. Raises `jaxloc._core.files.FileFormatError` naming the
     file."""
     path = os.fspath(path)
     where = f"camera file `{path}`"
@@ -683,7 +976,7 @@ def load_camera(path: str | os.PathLike, name: str | None = None) -> AbstractCam
     """Read a camera file: the camera dict as JSON or YAML, OpenCV `cv::FileStorage`
     YAML, or a Kalibr camchain (camera `name`, default `cam0`). See the module docstring.
 
-    Raises [`jaxloc._core.files.FileFormatError`][] (a `ValueError`; for a missing file
+    Raises `jaxloc._core.files.FileFormatError` (a `ValueError`; for a missing file
     also a `FileNotFoundError`) naming the file, and the bad key or value."""
     path = os.fspath(path)
     d = read_camera_mapping(path)

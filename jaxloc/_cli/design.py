@@ -8,13 +8,26 @@ import time
 
 import numpy as np
 
-from .common import check_outputs, check_seed_arg, EXIT_NO_RESULT, EXIT_OK, write_report
+from .common import (
+    chatter,
+    check_outputs,
+    check_seed_arg,
+    EXIT_CODES_HELP,
+    EXIT_NO_RESULT,
+    EXIT_OK,
+    HelpFormatter,
+    quiet_option,
+    write_report,
+)
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the `design` subcommand to `jaxloc`'s sub-parsers."""
+def register(sub: argparse._SubParsersAction, parents=None) -> None:
+    """Add the `design` subcommand to `jaxloc`'s sub-parsers (with the options of the
+    `parents` parsers; default: `--quiet`)."""
+    parents = [quiet_option()] if parents is None else list(parents)
     p = sub.add_parser(
-        "design",
+        "design", parents=parents, epilog=EXIT_CODES_HELP,
+        formatter_class=HelpFormatter,
         help="search for a formation that minimizes the expected localization error",
         description=(
             "Optimize the formation (triangle, headings, overhead camera placement, PTZ "
@@ -299,13 +312,13 @@ def _write_outputs(args, res, report, scenario, baseline, feasible):
     if args.out and feasible:
         save_scenario(designed, args.out)
         designed = load_scenario(args.out)  # verify what the file says
-        print(f"\nwrote {args.out} (run it with: jaxloc simulate --scenario {args.out})")
+        chatter(args)(f"\nwrote {args.out} (run it with: jaxloc simulate --scenario {args.out})")
     if args.formation_json:
         keys = ("initial", "optimized", "feasible")
-        write_report(args.formation_json, {k: report[k] for k in keys})
+        write_report(args.formation_json, {k: report[k] for k in keys}, quiet=args.quiet)
     if args.plot:
         plot_formations(baseline, res.formation, scenario, args.plot, seed=args.seed)
-        print(f"wrote {args.plot}")
+        chatter(args)(f"wrote {args.plot}")
     return designed
 
 
@@ -341,7 +354,7 @@ def _cmd_design(args) -> int:
     elif args.verify_trials:
         print("\nFresh Monte Carlo skipped: no feasible formation to verify.")
     if args.json:
-        write_report(args.json, report)
+        write_report(args.json, report, quiet=args.quiet)
     return EXIT_OK if feasible else EXIT_NO_RESULT
 
 

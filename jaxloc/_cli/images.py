@@ -11,7 +11,16 @@ import os
 
 import numpy as np
 
-from .common import check_outputs, EXIT_NO_RESULT, EXIT_OK, write_report
+from .common import (
+    chatter,
+    check_outputs,
+    EXIT_CODES_HELP,
+    EXIT_NO_RESULT,
+    EXIT_OK,
+    HelpFormatter,
+    quiet_option,
+    write_report,
+)
 
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
@@ -68,11 +77,6 @@ def _check_model_options(args) -> None:
             )
 
 
-def _zoom_out_path(out: str, zoom: float) -> str:
-    stem, suffix = os.path.splitext(out)
-    return f"{stem}_zoom{zoom:.3f}{suffix}"
-
-
 def _cmd_calibrate(args) -> int:
     from .._cameras.files import save_camera
     from .._vision.calibrate import (
@@ -86,6 +90,12 @@ def _cmd_calibrate(args) -> int:
         raise ValueError(f"`--square` must be a positive length in metres; got {args.square}.")
     _check_model_options(args)
     check_outputs(args, files=("out", "json"))
+    if args.model == "ptz" and args.format == "kalibr":
+        raise ValueError(
+            "--model ptz writes one camera file holding the whole zoom table, which Kalibr's "
+            "format cannot hold (a Kalibr camera has one set of intrinsics); use --format "
+            "opencv, json or yaml."
+        )
     if args.rational and args.format == "kalibr":
         raise ValueError(
             "`--rational` cannot be saved with `--format kalibr` (Kalibr's radtan has 4 "
@@ -127,9 +137,10 @@ def _cmd_calibrate(args) -> int:
     if "xi" in s["camera"]:
         print(f"  xi: {s['camera']['xi']:.6f}")
     print("  std: " + ", ".join(f"{k} {v:.3g}" for k, v in cal.std.items()))
-    print(f"  reprojection RMS {cal.rms:.4f} px; wrote {args.out} ({args.format or 'auto'})")
+    print(f"  reprojection RMS {cal.rms:.4f} px")
+    chatter(args)(f"wrote {args.out} ({args.format or 'auto'})")
     if args.json:
-        write_report(args.json, s)
+        write_report(args.json, s, quiet=args.quiet)
     return EXIT_OK
 
 
@@ -157,23 +168,24 @@ def _calibrate_ptz(args, board, pinhole_options) -> int:
     n_img = sum(len(imgs) for _, imgs in sets)
     print(f"ptz calibration at {len(cal.zooms)} zoom steps from {n_img} images "
           f"(board {board[0]}x{board[1]}, square {args.square} m)")  # fmt: skip
-    # One camera file per zoom step (each a complete pinhole calibration at that zoom);
-    # the table as a whole is in the --json report.
+    # One camera file: the PTZ with its whole zoom table (each step's report, with its
+    # standard deviations, is in the --json report).
+    extra = {"rms_px": [step.rms for step in cal.steps],
+             "num_images": [len(step.used) for step in cal.steps]}  # fmt: skip
+    save_camera(cal.camera, args.out, args.format, extra=extra)
     for z, step in zip(cal.zooms, cal.steps):
-        path = _zoom_out_path(args.out, z)
-        extra = {"rms_px": step.rms, "num_images": len(step.used), "zoom": z}
-        save_camera(step.camera, path, args.format,
-                    extra=None if args.format == "kalibr" else extra)  # fmt: skip
         c = step.camera
         print(f"  zoom {z:.3f}: fx {float(c.fx):.2f}, fy {float(c.fy):.2f}, "
               f"cx {float(c.cx):.2f}, cy {float(c.cy):.2f}, dist "
               f"{json.dumps(np.asarray(c.dist).round(6).tolist())}, RMS {step.rms:.4f} px "
-              f"({len(step.used)} images); wrote {path}")  # fmt: skip
+              f"({len(step.used)} images)")  # fmt: skip
         if step.rejected:
             print(f"    no board found in: {', '.join(step.rejected)}")
+    chatter(args)(f"  wrote {args.out} ({args.format or 'auto'}): one ptz camera with the "
+                  f"{len(cal.zooms)}-step zoom table")  # fmt: skip
     if args.json:
-        write_report(args.json, cal.summary())
-        print(f"  zoom table and per-step reports: {args.json}")
+        write_report(args.json, cal.summary(), quiet=args.quiet)
+        chatter(args)(f"  zoom table and per-step reports: {args.json}")
     return EXIT_OK
 
 
@@ -197,16 +209,28 @@ def _cmd_localize(args) -> int:
         print(f"  {name:<3} position ({pos})  yaw/pitch/roll ({ypr}){std}")
     for note in d["notes"]:
         print(f"  note: {note}")
-    write_report(out, d)
+    write_report(out, d, quiet=args.quiet)
     return EXIT_OK if d["status"] == "successful" else EXIT_NO_RESULT
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers."""
+def register(sub: argparse._SubParsersAction, parents=None) -> None:
+    """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers (each with
+    the options of the `parents` parsers; default: `--quiet`)."""
+    parents = [quiet_option()] if parents is None else list(parents)
     p = sub.add_parser(
-        "calibrate",
+        "calibrate", parents=parents, epilog=EXIT_CODES_HELP,
+        formatter_class=HelpFormatter,
         help="calibrate a camera from chessboard images (pinhole, omni, or ptz over zooms)",
-    )
+        description=(
+            "Calibrate one camera from images of a chessboard and write it as a camera file "
+            "that jaxloc, OpenCV or Kalibr reads. pinhole: OpenCV's calibrateCamera "
+            "(Brown-Conrady distortion, optionally the rational model); omni: the unified "
+            "(Mei) omnidirectional model, fitted by jaxloc's own Levenberg-Marquardt from a "
+            "closed-form start; ptz: one pinhole calibration per zoom step (--zoom Z IMAGES, "
+            "repeated), gathered into a zoom table. Prints the parameters, their standard "
+            "deviations and the reprojection RMS."
+        ),
+    )  # fmt: skip
     p.add_argument("--model", choices=("pinhole", "omni", "ptz"), required=True,
                    help="pinhole (OpenCV), omni (unified model, jaxloc's own fit) or ptz "
                    "(one pinhole calibration per --zoom step, gathered into a zoom "
@@ -215,8 +239,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--square", type=float, required=True, metavar="METRES",
                    help="side of a chessboard square")  # fmt: skip
     p.add_argument("--out", default="camera.yaml", metavar="FILE",
-                   help="camera file to write (ptz: one per zoom step, FILE's name with "
-                   "_zoomZ before its suffix)")  # fmt: skip
+                   help="camera file to write (ptz: one file, the camera with its whole "
+                   "zoom table; rms_px and num_images per zoom step)")  # fmt: skip
     p.add_argument("--format", choices=("opencv", "json", "yaml", "kalibr"), default=None,
                    help="camera file format (default: from the suffix; OpenCV YAML)")  # fmt: skip
     p.add_argument("--window", type=int, default=None,
@@ -252,8 +276,22 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="pinhole and omni: image files, quoted glob patterns or "
                    "folders")  # fmt: skip
     p.set_defaults(func=_cmd_calibrate)
-    p = sub.add_parser("localize", help="all four poses from a team's images of one cycle")
-    p.add_argument("--team", required=True, metavar="TEAM.yaml")
+    p = sub.add_parser(
+        "localize", parents=parents, epilog=EXIT_CODES_HELP,
+        formatter_class=HelpFormatter,
+        help="all four poses from a team's images of one cycle",
+        description=(
+            "Localize the four robots from a team's images of one cycle: detect the colour "
+            "markers in every image, turn them into bearings through each calibrated camera, "
+            "solve the cycle in closed form and refine it jointly; print every robot's "
+            "end-of-cycle position and yaw/pitch/roll in C1's body frame at the start, with "
+            "standard deviations, and write them as JSON. The team file names the strategy, "
+            "the camera files and the images of every step."
+        ),
+    )  # fmt: skip
+    p.add_argument("--team", required=True, metavar="TEAM.yaml",
+                   help="team file (YAML or JSON): strategy, camera files, images per step, "
+                   "odometry (see jaxloc.load_team)")  # fmt: skip
     p.add_argument("--out", metavar="FILE", help="poses JSON (default: TEAM_poses.json); "
                    "written also when the status is not successful (exit code 1)")
     p.add_argument("--no-refine", action="store_true",

@@ -2,6 +2,7 @@
 `design`, `track`. Exit codes: see `jaxloc._cli.common` (and `jaxloc --help`)."""
 
 import argparse
+import contextlib
 import os
 import sys
 import threading
@@ -9,32 +10,51 @@ import time
 
 import numpy as np
 
+from .._study.cluster import ClusterError
 from . import design as _cli_design, images as _cli_images, track as _cli_track
 from .common import (
+    chatter,
     check_outputs,
     check_seed_arg,
     EXIT_BAD_INPUT,
+    EXIT_CLUSTER,
     EXIT_CODES_HELP,
     EXIT_INTERRUPTED,
     EXIT_NO_RESULT,
     EXIT_OK,
+    HelpFormatter,
+    quiet_option,
     write_report,
 )
 from .table import format_table, plot_studies
 
 
-def _assumptions(scenario, trials: int, seed: int) -> str:
+def _assumptions(scenario, trials: int, seed: int, n_studies: int, paper_run: bool) -> str:
     noise = {
         "paper": "radius ~ N(0, sigma), uniform direction (the paper's model)",
         "gaussian": "isotropic Gaussian, sigma per axis",
     }[scenario.rig.noise_model]
-    return (
+    text = (
         f"Assumptions: pixel noise sigma = {scenario.rig.sigma_text()} px, {noise}; "
         f"odometry sigma = {100 * float(scenario.odometry_sigma_rel):g}% of the distance; "
-        f"{trials} trials per strategy; seed {seed}; {scenario.base.dtype}.\n"
+        f"{trials} trials{' per strategy' if n_studies > 1 else ''}; seed {seed}; "
+        f"{scenario.base.dtype}.\n"
         "Errors are of the end-of-cycle poses in the cycle's world frame (C1's body frame at "
-        "the start). 'paper run' is the paper's single simulated run (Table I)."
+        "the start)."
     )
+    if paper_run:
+        text += " 'paper run' is the paper's single simulated run (Table I)."
+    return text
+
+
+def _is_paper_scenario(scenario) -> bool:
+    """Whether `scenario` is the paper's simulated scenario (its strategy's), whose single
+    run the paper's Table I reports: only then is that run shown beside the study."""
+    from .._sim.scenario import Scenario
+    from .._sim.scenario_file import scenario_to_dict
+
+    paper = Scenario.paper(strategy=scenario.strategy)
+    return scenario_to_dict(scenario) == scenario_to_dict(paper)
 
 
 def _use_every_core() -> int | None:
@@ -98,6 +118,8 @@ def _check_study_args(args) -> None:
     _methods(args)
     if args.stream and args.plot:
         raise ValueError("--plot needs every trial's errors; it cannot be used with --stream.")
+    if args.ray is not None and args.ray.strip() == "":
+        raise ValueError("--ray ADDRESS must not be empty (omit ADDRESS for a local cluster).")
     check_outputs(args, files=("json",), dirs=("out",))
 
 
@@ -129,7 +151,7 @@ def _run_studies(scenarios: dict, args, chunk_size: int, methods, compile_order)
     order = [s for s in (compile_order or ()) if s in scenarios]
     order += [s for s in scenarios if s not in order]
     threads = None
-    if len(scenarios) > 1:
+    if len(scenarios) > 1 and args.ray is None:  # on Ray, the workers compile
         threads = compile_in_background([scenarios[s] for s in order], chunk_size, methods)
     summaries, studies, compiled_at = {}, {}, {}
     for i, strategy in enumerate(order):
@@ -140,12 +162,15 @@ def _run_studies(scenarios: dict, args, chunk_size: int, methods, compile_order)
         kwargs = dict(
             seed=args.seed, chunk_size=chunk_size, methods=methods,
             out_dir=None if args.out is None else os.path.join(args.out, strategy),
-            progress=not args.no_progress,
+            progress=not (args.no_progress or args.quiet),
         )  # fmt: skip
+        run, stream = run_study, stream_study
+        if args.ray is not None:
+            from .._study.cluster import run_study_on_ray as run, stream_study_on_ray as stream
         if args.stream:
-            summary = stream_study(scenarios[strategy], args.trials, **kwargs)
+            summary = stream(scenarios[strategy], args.trials, **kwargs)
         else:
-            studies[strategy] = run_study(scenarios[strategy], args.trials, **kwargs)
+            studies[strategy] = run(scenarios[strategy], args.trials, **kwargs)
             summary = summarize(studies[strategy], methods)
         summary["seconds"] = time.perf_counter() - t0
         summaries[strategy] = summary
@@ -160,17 +185,24 @@ def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
     _check_study_args(args)
     methods = _methods(args)
     chunk_size = _chunk_size(args, scenarios)
+    say = chatter(args)
+    paper_run = {s: _is_paper_scenario(scn) for s, scn in scenarios.items()}
     print(title)
-    print(_assumptions(next(iter(scenarios.values())), args.trials, args.seed))
+    print(_assumptions(next(iter(scenarios.values())), args.trials, args.seed, len(scenarios),
+                       any(paper_run.values())))  # fmt: skip
     t_start = time.perf_counter()
     report = {"title": title, "trials": args.trials, "seed": args.seed, "strategies": {},
               "devices": jax.device_count()}  # fmt: skip
-    summaries, studies, compiled_at = _run_studies(
-        scenarios, args, chunk_size, methods, compile_order
-    )
+    with _cluster(args) as where:
+        if where:
+            report["ray"] = where
+            say(f"\n({where}; every chunk one task, retried if its worker is lost)")
+        summaries, studies, compiled_at = _run_studies(
+            scenarios, args, chunk_size, methods, compile_order
+        )
     if compiled_at:
         report["compile_seconds"] = max(compiled_at.values())
-        print(
+        say(
             f"\n(compiled {len(scenarios)} studies in parallel threads, each study running "
             f"as soon as its program was ready: {report['compile_seconds']:.1f} s until the "
             f"last was compiled; trials sharded over {jax.device_count()} "
@@ -179,18 +211,40 @@ def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
     for strategy in scenarios:
         report["strategies"][strategy] = summary = summaries[strategy]
         print()
-        print(format_table(strategy, summary, methods))
-        print(f"({summary['seconds']:.1f} s"
-              f"{'' if len(scenarios) > 1 else ' including compilation'})")  # fmt: skip
+        print(format_table(strategy, summary, methods, paper_run=paper_run[strategy]))
+        compiling = "" if len(scenarios) > 1 or args.ray is not None else " including compilation"
+        say(f"({summary['seconds']:.1f} s{compiling})")
     report["total_seconds"] = time.perf_counter() - t_start
-    print(f"\nTotal {report['total_seconds']:.1f} s.")
+    say(f"\nTotal {report['total_seconds']:.1f} s.")
     if args.json:
-        print()
-        write_report(args.json, report)
+        say()
+        write_report(args.json, report, quiet=args.quiet)
     if args.plot:
-        plot_studies(studies, methods, args.plot)
-        print(f"wrote {args.plot}")
+        plot_studies({s: studies[s] for s in scenarios}, methods, args.plot)
+        say(f"wrote {args.plot}")
     return _study_exit_code(summaries)
+
+
+@contextlib.contextmanager
+def _cluster(args):
+    """With --ray: connect to the cluster (or start a local one) for the duration of the
+    studies and yield one line describing it; else yield None."""
+    if args.ray is None:
+        yield None
+        return
+    # No Ray call may start a cluster of its own (Ray's auto-init): after Ctrl-C the
+    # command's thread may still call Ray while the main thread disconnects. Read by Ray
+    # when it is imported, here (`connect`).
+    os.environ.setdefault("RAY_ENABLE_AUTO_CONNECT", "0")
+    from .._study.cluster import connect, describe_cluster, disconnect
+
+    address = None if args.ray == LOCAL_RAY else args.ray
+    started = connect(address)
+    try:
+        yield describe_cluster()
+    finally:
+        if started:
+            disconnect()
 
 
 def _study_exit_code(summaries: dict) -> int:
@@ -253,57 +307,144 @@ def _cmd_cameras(args) -> int:
     return 0
 
 
+#: `--ray` given without an address: start a local Ray cluster.
+LOCAL_RAY = "local"
+
+_STUDY_DESCRIPTION = """\
+Each trial simulates one localization cycle (the robots' moves, every camera's pixels with
+noise, the odometry), solves it with every estimator of --methods on the same observations,
+and records each end-of-cycle pose's error against the truth and the Cramér–Rao bound of
+that trial's geometry. The tables show, per camera, the median, RMSE and p90 of each
+estimator's position error (cm) and orientation error (deg; the paper's mean of
+|yaw|, |pitch|, |roll| and the geodesic angle), the bound as a distribution, the
+efficiency (bound RMSE / refined RMSE; 1 = at the bound), the failures per status, and the
+refined covariance's consistency (NEES). Trial i uses the key fold_in(key(SEED), i): the
+numbers do not depend on --chunk-size, on the number of devices, or on which machine of a
+--ray cluster ran which chunk."""
+
+
+def _version() -> str:
+    from .. import __version__
+
+    return __version__
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `jaxloc` argument parser, every subcommand registered."""
     parser = argparse.ArgumentParser(
         prog="jaxloc",
-        description="Cooperative localization of a heterogeneous robot team.",
+        description=(
+            "Cooperative localization of a heterogeneous robot team: three ground robots "
+            "and a climbing robot with cameras see each other and recover their poses "
+            "(the paper 'Heterogeneous Multi-Robot Localization in Unknown 3D Space', its "
+            "errata fixed). Monte Carlo studies, calibration, localization from images "
+            "and formation design. 'jaxloc COMMAND --help' describes each command. "
+            "Runs in float64, with every core as a JAX CPU device and a persistent "
+            "compilation cache ($JAXLOC_COMPILE_CACHE, default ~/.cache/jaxloc/xla; 'off' "
+            "disables it)."
+        ),
         epilog=EXIT_CODES_HELP,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        formatter_class=HelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("table1", help="the paper's Table I as distributions over many trials")
-    _study_options(p)
+    parser.add_argument("--version", action="version", version=f"jaxloc {_version()}",
+                        help="print jaxloc's version and exit")  # fmt: skip
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                title="commands")  # fmt: skip
+    quiet = quiet_option()
+    p = sub.add_parser(
+        "table1", parents=[quiet], formatter_class=HelpFormatter,
+        help="the paper's Table I as distributions over many trials",
+        description=(
+            "The paper's Table I (simulation) as distributions: two Monte Carlo studies of "
+            "the paper's simulated scenario (saddle floor, sinusoidal ceiling, 2 px pixel "
+            "noise, 1% odometry), one per moving strategy (concurrent, sequential), with "
+            "the paper's single simulated run beside them.\n\n" + _STUDY_DESCRIPTION
+        ),
+        epilog=EXIT_CODES_HELP,
+    )  # fmt: skip
+    _study_options(p, studies=2)
     p.set_defaults(func=_cmd_table1)
-    p = sub.add_parser("simulate", help="Monte Carlo study of a scenario file (YAML/JSON)")
-    p.add_argument("--scenario", required=True, metavar="FILE")
-    _study_options(p)
+    p = sub.add_parser(
+        "simulate", parents=[quiet], formatter_class=HelpFormatter,
+        help="Monte Carlo study of a scenario file (YAML/JSON)",
+        description=(
+            "A Monte Carlo study of any scenario (its world, formation, moves, cameras, "
+            "noise and strategy), read from a scenario file, with the same table as "
+            "'jaxloc table1'; the paper's single run is shown only for the paper's own "
+            "scenario.\n\n" + _STUDY_DESCRIPTION
+        ),
+        epilog=EXIT_CODES_HELP,
+    )  # fmt: skip
+    p.add_argument("--scenario", required=True, metavar="FILE",
+                   help="scenario file (YAML or JSON), e.g. written by jaxloc.save_scenario "
+                   "or 'jaxloc design --out'")  # fmt: skip
+    _study_options(p, studies=1)
     p.set_defaults(func=_cmd_simulate)
-    p = sub.add_parser("cameras", help="the paper's preset cameras and a round-trip check")
+    p = sub.add_parser(
+        "cameras", parents=[quiet], help="the paper's preset cameras and a round-trip check",
+        description=(
+            "Print the paper's nominal cameras (the overhead perspective camera, the PTZ at "
+            "its wide and tele ends, the omnidirectional camera): image size, fields of "
+            "view (deg), and the largest error of project(unproject(pixel)) over a grid of "
+            "pixels, a check of the camera models."
+        ),
+    )  # fmt: skip
     p.set_defaults(func=_cmd_cameras)
-    _cli_images.register(sub)
-    _cli_design.register(sub)
-    _cli_track.register(sub)
+    _cli_images.register(sub, parents=[quiet])
+    _cli_design.register(sub, parents=[quiet])
+    _cli_track.register(sub, parents=[quiet])
     return parser
 
 
-def _study_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--trials", type=int, default=10_000, help="trials per strategy")
+def _method_help() -> str:
+    from .._study.trial import METHODS
+
+    what = {
+        "paper": "the paper's closed form, its linear Eq. 6 for the overhead camera",
+        "robust": "jaxloc's closed form, planar-safe P3P for the overhead camera",
+        "refined": "joint maximum-likelihood refinement of the whole cycle, from robust",
+    }
+    choices = "; ".join(f"{m}: {what.get(m, m)}" for m in METHODS)
+    return (f"comma-separated estimators to compare on the same observations, any of "
+            f"{', '.join(METHODS)} ({choices}); default: {','.join(METHODS)}")  # fmt: skip
+
+
+def _study_options(p: argparse.ArgumentParser, studies: int) -> None:
+    trials_help = ("trials of each of the two studies (concurrent, sequential)" if studies > 1
+                   else "number of trials")  # fmt: skip
+    p.add_argument("--trials", type=int, default=10_000, metavar="N",
+                   help=f"{trials_help} (default: 10000)")  # fmt: skip
     p.add_argument("--seed", type=int, default=0,
-                   help="the study's seed, an integer in [0, 4294967295] (2**32 - 1)")  # fmt: skip
+                   help="the study's seed, an integer in [0, 4294967295] (2**32 - 1); trial "
+                   "i uses the key fold_in(key(SEED), i) (default: 0)")  # fmt: skip
+    p.add_argument("--methods", metavar="LIST", help=_method_help())
     p.add_argument(
-        "--chunk-size",
-        type=int,
-        help="trials per compiled call (default: the fewest chunks of at most 4096 "
-        "trials with the least padding; a resumed --out study keeps its own)",
-    )
-    p.add_argument("--json", metavar="FILE", help="write every number as JSON (strict: NaN "
-                   "as null)")  # fmt: skip
-    p.add_argument("--plot", metavar="FILE", help="error histograms per camera (PNG)")
-    p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable: run the "
-                   "same command again after an interruption)")  # fmt: skip
-    p.add_argument("--no-progress", action="store_true")
+        "--chunk-size", type=int, metavar="N",
+        help="trials per compiled call, which bounds memory (default: the fewest chunks of "
+        "at most 4096 trials with the least padding; a resumed --out study keeps its own)",
+    )  # fmt: skip
+    p.add_argument("--out", metavar="DIR", help="write every chunk of trials to DIR as it "
+                   "finishes (resumable: after an interruption, run the same command again; "
+                   "finished chunks are verified and kept)")  # fmt: skip
     p.add_argument(
-        "--stream",
-        action="store_true",
+        "--stream", action="store_true",
         help="bounded memory for any number of trials: keep only running statistics "
         "(percentiles from histograms, within 1.2%%); no --plot",
-    )
-    p.add_argument(
-        "--methods",
-        metavar="LIST",
-        help="comma-separated estimators to compare (default: paper,robust,refined)",
-    )
+    )  # fmt: skip
+    p.add_argument("--ray", nargs="?", const=LOCAL_RAY, default=None, metavar="ADDRESS",
+                   help="run every chunk as a task on a Ray cluster: the one at ADDRESS (e.g. "
+                   "ray://HEAD:10001, or 'auto' for the cluster this machine is in), or a new "
+                   "local one with a worker per core when ADDRESS is omitted; a task whose "
+                   "worker is lost is retried; same numbers, --out and --stream as a local "
+                   "run; needs pip install 'jaxloc[cluster]' (and jaxloc on every "
+                   "node)")  # fmt: skip
+    p.add_argument("--json", metavar="FILE", help="write every number as JSON (strict: NaN "
+                   "as null)")  # fmt: skip
+    p.add_argument("--plot", metavar="FILE", help="error CDFs per camera, position and "
+                   "orientation, each estimator beside the Cramér–Rao bound (.png, .pdf, "
+                   ".svg, ...); not with --stream")  # fmt: skip
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bar (the tables are still printed)")  # fmt: skip
 
 
 def _one_line(e: BaseException) -> str:
@@ -349,6 +490,9 @@ def _main(argv: list[str] | None, *, threaded: bool) -> int:
     except (ValueError, OSError) as e:
         print(f"jaxloc: error: {_one_line(e)}", file=sys.stderr, flush=True)
         return EXIT_BAD_INPUT
+    except ClusterError as e:
+        print(f"jaxloc: error: {_one_line(e)}", file=sys.stderr, flush=True)
+        return EXIT_CLUSTER
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -356,15 +500,30 @@ def main(argv: list[str] | None = None) -> int:
     return its exit code (see `jaxloc --help`); errors are one line on stderr. JAX's
     configuration is left alone (the dtype is the caller's: float64 only if JAX's x64
     mode is on). Ctrl-C stops the command between two steps of JAX's work; the `jaxloc`
-    program ([`console_main`][]) stops at once."""
+    program ([`console_main`][jaxloc._cli.main.console_main]) stops at once."""
     return _main(argv, threaded=False)
 
 
+def _stop_ray(timeout: float = 15.0) -> None:
+    """Disconnect from Ray if a --ray command is still connected (stopping the local
+    cluster it started): `os._exit` skips Ray's own exit handler, which would leave the
+    cluster's agent processes behind. Bounded by `timeout`: an interrupted command exits
+    anyway."""
+    if "ray" not in sys.modules:
+        return
+    from .._study.cluster import disconnect
+
+    stopping = threading.Thread(target=disconnect, daemon=True)
+    stopping.start()
+    stopping.join(timeout)
+
+
 def console_main() -> int:
-    """The `jaxloc` program: [`main`][] in float64 (JAX's x64 mode), with every core
-    exposed as a JAX CPU device, the persistent compilation cache on, and the command in
-    a worker thread, so that Ctrl-C stops it at once, with one line and exit code 130. A
-    study run with `--out` is left resumable: every file is written atomically."""
+    """The `jaxloc` program: [`main`][jaxloc._cli.main.main] in float64 (JAX's x64 mode),
+    with every core exposed as a JAX CPU device, the persistent compilation cache on, and
+    the command in a worker thread, so that Ctrl-C stops it at once, with one line and
+    exit code 130. A study run with `--out` is left resumable: every file is written
+    atomically."""
     try:
         import jax
 
@@ -376,6 +535,7 @@ def console_main() -> int:
         print("jaxloc: interrupted.", file=sys.stderr)
         code = EXIT_INTERRUPTED
     if code == EXIT_INTERRUPTED:
+        _stop_ray()
         sys.stdout.flush()
         if sys.stdout.isatty():
             sys.stdout.write("\x1b[?25h\n")  # show the cursor a progress bar hid

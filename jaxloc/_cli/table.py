@@ -66,9 +66,13 @@ def _title(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
     return f"{strategy.capitalize()} strategy — {n} trials; failures skipped ({'; '.join(fails)})"
 
 
-def _header(methods: tuple[str, ...], with_crlb: bool) -> tuple[str, str]:
-    head = f"{'Camera':<10}{'paper run':>10} |"
-    sub = f"{'':<10}{'(1 trial)':>10} |"
+def _header(methods: tuple[str, ...], with_crlb: bool, paper_run: bool) -> tuple[str, str]:
+    head, sub = f"{'Camera':<10}", f"{'':<10}"
+    if paper_run:
+        head += f"{'paper run':>10} |"
+        sub += f"{'(1 trial)':>10} |"
+    else:
+        head, sub = head + " |", sub + " |"
     for m in methods:
         head += f" {_label(m):^23} |"
         sub += f" {'median':>7}{'RMSE':>8}{'p90':>8} |"
@@ -90,16 +94,20 @@ def _crlb_cells(summary: dict, methods, cam: str, key: str, scale: float, crlb_k
     return f" {_fmt(med)}{_fmt(bound, 8)}{_fmt(p90, 8)} | {_fmt(eff, 6)}"
 
 
-def _row_group(strategy: str, summary: dict, methods, row: tuple) -> list[str]:
+def _row_group(strategy: str, summary: dict, methods, row: tuple, paper_run: bool) -> list[str]:
     title, key, scale, paper_key, crlb_key = row
     crlb = summary.get("crlb")
     labels = {cam: cam for cam in CAMERAS}
     if strategy == "concurrent":
         labels["C1"] = "C1 (ref)"
-    lines = ["", title, *_header(methods, crlb is not None)]
+    lines = ["", title, *_header(methods, crlb is not None, paper_run)]
     for ci, cam in enumerate(CAMERAS):
-        paper = PAPER_TABLE1[strategy][paper_key][ci] if paper_key else float("nan")
-        line = f"{labels[cam]:<10}{_fmt(paper, 10)} |"
+        line = f"{labels[cam]:<10}"
+        if paper_run:
+            paper = PAPER_TABLE1[strategy][paper_key][ci] if paper_key else float("nan")
+            line += f"{_fmt(paper, 10)} |"
+        else:
+            line += " |"
         for m in methods:
             s = summary["methods"][m]["cameras"][cam][key]
             med, rmse, p90 = (s[k] * scale for k in ("median", "rmse", "p90"))
@@ -125,16 +133,19 @@ def _nees_line(nees: dict) -> str:
     )
 
 
-def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
+def format_table(
+    strategy: str, summary: dict, methods: tuple[str, ...], *, paper_run: bool = True
+) -> str:
     """The paper's Table I layout for one strategy, with jaxloc's distributions beside it.
 
     **Arguments:** `strategy`; `summary`, [`jaxloc.summarize`][]'s (or a
-    [`jaxloc.StreamingSummary`][]'s) dict; `methods`, the study's methods in order.
-    Failed trials are skipped and counted in the title; statistics of an empty set of
-    trials print as `n/a`."""
+    [`jaxloc.StreamingSummary`][]'s) dict; `methods`, the study's methods in order;
+    `paper_run`, whether to show the paper's single simulated run (only meaningful for
+    the paper's own scenario). Failed trials are skipped and counted in the title;
+    statistics of an empty set of trials print as `n/a`."""
     lines = [_title(strategy, summary, methods)]
     for row in _ROWS:
-        lines += _row_group(strategy, summary, methods, row)
+        lines += _row_group(strategy, summary, methods, row, paper_run)
     if summary.get("crlb") is not None:
         lines.append("")
         lines.append(
@@ -148,46 +159,95 @@ def format_table(strategy: str, summary: dict, methods: tuple[str, ...]) -> str:
     return "\n".join(lines)
 
 
-def _histograms(ax, study: dict, methods, ci: int) -> bool:
-    """Position-error histograms of each method's successful trials for camera `ci`;
-    False if no method has a nonzero error to show."""
-    errs = {}
+# How each estimator's curve is drawn: distinct line styles and markers, so that two
+# methods that coincide (paper and robust do for C1-C3: they share the ground robots'
+# closed form) both stay visible, one dashed over the other.
+_STYLES = {
+    "paper": dict(color="tab:orange", linestyle="-", linewidth=2.6, alpha=0.75),
+    "robust": dict(color="tab:blue", linestyle=(0, (5, 3)), linewidth=1.6, marker="o",
+                   markersize=3.5, markevery=0.1),
+    "refined": dict(color="tab:green", linestyle="-.", linewidth=1.6, marker="s",
+                    markersize=3.5, markevery=(0.05, 0.1)),
+}
+_BOUND_STYLE = dict(color="black", linestyle=":", linewidth=2.0)
+# Panel rows of a strategy: title, study key of the methods' errors, of the bound's draws,
+# scale to the printed unit, axis label.
+_PANELS = (
+    ("position", "position", "crlb_position_sample", 100.0, "position error (cm)"),
+    ("orientation", "rotation", "crlb_rotation_sample", 180.0 / np.pi,
+     "orientation error (deg, geodesic)"),
+)  # fmt: skip
+
+
+def _ecdf(ax, x: np.ndarray, n_total: int, label: str, style: dict) -> None:
+    """Empirical CDF of `x` (the errors of the successful trials) as a fraction of all
+    `n_total` trials: a method with failures ends below 1."""
+    x = np.sort(x[np.isfinite(x)])
+    if not x.size:
+        return
+    y = np.arange(1, x.size + 1) / n_total
+    ax.step(x, y, where="post", label=label, **style)
+
+
+def _cdf_panel(ax, study: dict, methods, ci: int, panel: tuple) -> bool:
+    """The CDFs of one camera's errors, each method's and the Cramér-Rao bound's; False
+    if there is nothing to show (the reference robot: zero error by definition)."""
+    _, key, bound_key, scale, _ = panel
+    n = study["status"].shape[0]
+    curves = []
     for mi, m in enumerate(methods):
         ok = study["status"][:, mi] == 0
-        err = 100 * study["position"][ok, mi, ci]
-        errs[m] = err[err > 0]
-    positive = [e for e in errs.values() if e.size]
-    if not positive:
+        curves.append((scale * study[key][ok, mi, ci], _label(m), _STYLES.get(m, {})))
+    if bound_key in study:
+        every_ok = np.all(study["status"] == 0, axis=1)
+        curves.append((scale * study[bound_key][every_ok, ci], "Cramér–Rao bound",
+                       _BOUND_STYLE))  # fmt: skip
+    # The reference robot's errors are zero up to round-off (1e-16 deg): nothing to plot.
+    positive = [x[x > 1e-9] for x, _, _ in curves]
+    if not any(p.size for p in positive):
         return False
-    lo = min(np.percentile(e, 0.5) for e in positive)
-    hi = max(np.percentile(e, 99.5) for e in positive)
-    bins = np.logspace(np.log10(lo), np.log10(hi), 60)
-    for m, err in errs.items():
-        ax.hist(err, bins=bins, alpha=0.5, label=_label(m))
+    for x, label, style in curves:
+        _ecdf(ax, x, n, label, style)
+    lo = min(np.percentile(p, 0.5) for p in positive if p.size)
+    hi = max(np.percentile(p, 99.5) for p in positive if p.size)
+    ax.set_xscale("log")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(0.0, 1.0)
+    ax.grid(True, which="both", alpha=0.25)
     return True
 
 
 def plot_studies(studies: dict, methods, path: str) -> None:
-    """Error histograms per strategy (rows) and camera (columns), saved to `path`."""
+    """Error CDFs per strategy and camera, saved to `path`: for each strategy a row of
+    position errors and a row of orientation errors (geodesic angle), one column per
+    camera, every method's curve beside the Cramér–Rao bound's (one draw from
+    N(0, bound) per trial: an estimator exactly at the bound)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(studies), 4, figsize=(16, 3.6 * len(studies)), squeeze=False)
-    for row, (strategy, study) in enumerate(studies.items()):
+    rows = [(strategy, panel) for strategy in studies for panel in _PANELS]
+    fig, axes = plt.subplots(len(rows), 4, figsize=(17, 3.4 * len(rows)), squeeze=False)
+    for r, (strategy, panel) in enumerate(rows):
+        study = studies[strategy]
         for ci, cam in enumerate(CAMERAS):
-            ax = axes[row, ci]
-            if not _histograms(ax, study, methods, ci):
+            ax = axes[r, ci]
+            if not _cdf_panel(ax, study, methods, ci, panel):
                 ok = np.any(study["status"] == 0)
                 text = "reference robot:\nexact by definition" if ok else "no successful trial"
-                ax.text(0.5, 0.5, text, ha="center", va="center", transform=ax.transAxes)
+                ax.text(0.5, 0.5, f"{strategy}: {cam}\n{text}", ha="center", va="center",
+                        transform=ax.transAxes)  # fmt: skip
                 ax.set_axis_off()
                 continue
-            ax.set_xscale("log")
-            ax.set_title(f"{strategy}: {cam}")
-            ax.set_xlabel("position error (cm, log scale)")
-            ax.legend(fontsize=8)
+            ax.set_title(f"{strategy}: {cam}, {panel[0]}")
+            ax.set_xlabel(f"{panel[4]}, log scale")
+            if ci == 0 or not axes[r, 0].axison:
+                ax.set_ylabel("fraction of trials ≤ x")
+            ax.legend(fontsize=7, loc="lower right")
+    counts = ", ".join(f"{s} {study['status'].shape[0]}" for s, study in studies.items())
+    fig.suptitle(f"Error CDFs over {counts} trials (a method's failed trials keep its curve "
+                 "below 1)", fontsize=11)  # fmt: skip
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -11,17 +11,29 @@ import time
 
 import numpy as np
 
-from .common import check_outputs, check_seed_arg, EXIT_NO_RESULT, EXIT_OK, write_report
+from .common import (
+    chatter,
+    check_outputs,
+    check_seed_arg,
+    EXIT_CODES_HELP,
+    EXIT_NO_RESULT,
+    EXIT_OK,
+    HelpFormatter,
+    quiet_option,
+    write_report,
+)
 
 
 _LABELS = {"chain": "chaining", "smoother": "smoother", "one_step": "one-step"}
 _BOUNDS = {"chain": "chained", "smoother": "window", "one_step": "own"}
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add the `track` subcommand to `jaxloc`'s sub-parsers."""
+def register(sub: argparse._SubParsersAction, parents=None) -> None:
+    """Add the `track` subcommand to `jaxloc`'s sub-parsers (with the options of the
+    `parents` parsers; default: `--quiet`)."""
+    parents = [quiet_option()] if parents is None else list(parents)
     p = sub.add_parser(
-        "track",
+        "track", parents=parents, epilog=EXIT_CODES_HELP, formatter_class=HelpFormatter,
         help="track the team over many cycles: chaining, fixed-lag smoother, one-step",
         description=(
             "Monte Carlo study of K consecutive cycles of a scenario (its `tracking` "
@@ -50,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "chaining, truth) and RMSE against cycle with the bounds")
     p.add_argument("--out", metavar="DIR", help="stream chunks to DIR (resumable: run the "
                    "same command again after an interruption)")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_track)
 
 
@@ -244,12 +256,13 @@ def _cmd_track(args) -> int:
     window = DEFAULT_WINDOW if args.window is None else args.window
     chunk_size = _chunk_size(args)
     title = f"jaxloc track — {args.scenario}, {args.cycles} cycles"
+    say = chatter(args)
     print(title)
     print(_assumptions(track, args, window))
     t0 = time.perf_counter()
     study = run_track_study(
         track, args.runs, args.cycles, seed=args.seed, chunk_size=chunk_size, window=window,
-        out_dir=args.out, progress=not args.no_progress,
+        out_dir=args.out, progress=not (args.no_progress or args.quiet),
     )  # fmt: skip
     seconds = time.perf_counter() - t0
     summary = summarize_track(study)
@@ -265,8 +278,8 @@ def _cmd_track(args) -> int:
         f"{100 * one['ambiguous']:.2f}% ambiguous, {one['wrong_root_successful']} wrong "
         "roots marked successful."
     )
-    print(f"({seconds:.1f} s including compilation; {jax.device_count()} "
-          f"{jax.devices()[0].platform.upper()} devices)")  # fmt: skip
+    say(f"({seconds:.1f} s including compilation; {jax.device_count()} "
+        f"{jax.devices()[0].platform.upper()} devices)")  # fmt: skip
     if args.json:
         report = {
             "title": title, "scenario": os.path.abspath(args.scenario), "runs": args.runs,
@@ -274,10 +287,10 @@ def _cmd_track(args) -> int:
             "chunk_size": chunk_size, "devices": jax.device_count(), "seconds": seconds,
             "summary": summary, "targets": measured,
         }  # fmt: skip
-        write_report(args.json, report)
+        write_report(args.json, report, quiet=args.quiet)
     if args.plot:
         plot_track(study, summary, args.plot)
-        print(f"wrote {args.plot}")
+        say(f"wrote {args.plot}")
     if not any(summary["methods"][m][0]["n_ok"] for m in summary["methods"]):
         print("jaxloc: no run's first cycle succeeded, with any method.", file=sys.stderr)
         return EXIT_NO_RESULT

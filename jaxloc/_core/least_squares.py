@@ -192,6 +192,26 @@ def levenberg_marquardt(
     return LMResult(x, jnp.maximum(out.k - 1, 0), out.converged, out.r, out.J)
 
 
+def gauss_newton(model, retract, x0: PyTree, *, steps: int, lam: float) -> PyTree:
+    """`steps` Gauss--Newton steps with the fixed isotropic damping `lam` (`H + lam I`; a
+    tiny value regularizes directions no residual touches), no convergence test: the
+    kernel's undamped case as a `fori_loop` with static bounds, so reverse-mode
+    differentiation applies. A step to a point where the model is not finite is not
+    taken. `model(x) -> (r, J)` and `retract(x, delta)` as in [`levenberg_marquardt`][]."""
+    r0, J0 = model(x0)
+    eye = jnp.eye(J0.shape[1], dtype=J0.dtype)
+
+    def body(_, carry):
+        x, r, J = carry
+        delta, finite = solve_spd(gram(J) + lam * eye, -jnp.sum(J * r[:, None], axis=0))
+        x_new = retract(x, delta)
+        r_new, J_new = model(x_new)
+        ok = finite & jnp.isfinite(jnp.sum(r_new * r_new))
+        return jax.tree.map(lambda a, b: jnp.where(ok, a, b), (x_new, r_new, J_new), carry)
+
+    return jax.lax.fori_loop(0, steps, body, (x0, r0, J0))[0]
+
+
 def jvp_nonzero(f, primals, tangents):
     """`jax.jvp(f, primals, tangents)[1]` over the pytree `primals`, differentiating only
     the leaves whose tangent is not a `SymbolicZero`; `None` if every tangent is zero."""

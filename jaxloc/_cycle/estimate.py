@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.results import RESULTS
+from .layout import first_sighting
 from .observations import CyclePoses
 
 
@@ -80,6 +81,25 @@ class CycleStarts(eqx.Module):
     ok: Bool[Array, " k"]
 
 
+def start_placements(starts: CycleStarts, scales, strategy: str, T0_place):
+    """The starts as placements: `(T_place (k, placements, 7), T_over (k, 7), active
+    (k,))`, each start's formation the estimate's placements `T0_place` rescaled from the
+    estimate's `scales` to the start's (identity where a start does not exist)."""
+    ks, _ = first_sighting(strategy)
+    factor = starts.scales / scales[None]
+    T_place = jnp.concatenate(
+        [jnp.broadcast_to(T0_place[:, :4], (factor.shape[0],) + T0_place[:, :4].shape),
+         T0_place[None, :, 4:] * factor[:, ks, None]],
+        axis=-1,
+    )  # fmt: skip
+    T_over = starts.T_world_overhead
+    active = starts.ok & jnp.all(jnp.isfinite(T_place), axis=(1, 2))
+    active = active & jnp.all(jnp.isfinite(T_over), axis=1)
+    ident = jnp.zeros(7, T_over.dtype).at[0].set(1.0)
+    T_place = jnp.where(active[:, None, None], T_place, T0_place[None])
+    return T_place, jnp.where(active[:, None], T_over, ident[None]), active
+
+
 class CycleEstimate(eqx.Module):
     """Estimated poses of one localization cycle.
 
@@ -97,10 +117,10 @@ class CycleEstimate(eqx.Module):
       overhead solver's `"planarity"`, `"collinearity"`, `"num_valid_candidates"`,
       `"rms_angular_error"`; a refinement adds `"num_steps"`, `"rms_pixel_error"` and, for
       a multi-start, `"start_picked"` and `"runner_up_chi2"`.
-    - `checks`: a [`FitCheck`][]: the gates' statistics and the status before them.
+    - `checks`: a [`jaxloc.FitCheck`][]: the gates' statistics and the status before them.
     - `covariance`: the first-order [`jaxloc.CycleCovariance`][] at the estimate (what the
       observability gate inverted; zeros where not positive definite).
-    - `alternatives`: a [`CycleStarts`][] (the concurrent strategy's closed form with the
+    - `alternatives`: a [`jaxloc.CycleStarts`][] (the concurrent strategy's closed form with the
       robust overhead solver) or `None`.
     """
 

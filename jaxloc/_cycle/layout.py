@@ -18,9 +18,9 @@ import numpy as np
 
 
 STRATEGIES = ("sequential", "concurrent")
-#: The four robots (and their cameras) in the order of every per-robot array: the
-#: climbing robot C, then the ground robots C1, C2, C3.
 CAMERAS = ("C", "C1", "C2", "C3")
+"""The four robots (and their cameras) in the order of every per-robot array: the
+climbing robot C, then the ground robots C1, C2, C3."""
 
 _STEPS = {"sequential": 4, "concurrent": 3}
 _MOVERS = {"sequential": (1, 2, 0), "concurrent": (1, 2, 1, 2)}

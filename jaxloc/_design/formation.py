@@ -46,11 +46,11 @@ from .._sim.simulate import camera_points, overhead_frames
 from .._sim.world import body_frame_on_surface, formation_xy
 
 
-#: Names of the fields of a [`jaxloc.Formation`][], in order.
 FORMATION_FIELDS = (
     "base", "side", "headings", "overhead_xy", "overhead_heading", "pan", "tilt", "zoom",
     "move_mean", "moves", "initial_xy",
 )  # fmt: skip
+"""Names of the fields of a [`jaxloc.Formation`][], in order."""
 #: The optional fields (`None` or an array).
 OPTIONAL_FIELDS = ("moves", "initial_xy")
 _ARRAY_FIELDS = tuple(n for n in FORMATION_FIELDS if n not in OPTIONAL_FIELDS)
@@ -393,7 +393,7 @@ def place_fixed(formation: Formation, scenario: Scenario) -> Placement:
 
 
 def placement_from_truth(truth) -> Placement:
-    """The [`Placement`][] of a simulated cycle's [`jaxloc.CycleTruth`][] (environment
+    """The [`jaxloc.Placement`][] of a simulated cycle's [`jaxloc.CycleTruth`][] (environment
     frame poses as matrices)."""
     T = truth.T_env_body
     shape = T.wxyz_xyz.shape[:-1]
@@ -506,8 +506,9 @@ def constraint_values(
     **Arguments:**
 
     - `formation`, `scenario`: the design and its world.
-    - `placement`: its poses, from [`place_fixed`][] or [`placement_from_truth`][].
-    - `limits`: a [`Limits`][].
+    - `placement`: its poses, from [`jaxloc.place_fixed`][] or
+      `jaxloc._design.formation.placement_from_truth`.
+    - `limits`: a [`jaxloc.Limits`][].
     - `strict_steps`: apply the margins to every step; if `False`, only to the initial
       formation, and the later (randomly resampled) steps need only be just feasible
       (margins 0; the simulator's resampling keeps them in view).
@@ -562,7 +563,7 @@ def constraint_values(
 
 def constraint_penalty(values: dict[str, Array]) -> Array:
     r"""$\sum_g \sum_i \max(0, -g_i / s_g)^2$ over the groups of
-    [`constraint_values`][], each scaled by `CONSTRAINT_SCALES`. Zero iff feasible;
+    [`jaxloc.constraint_values`][], each scaled by `CONSTRAINT_SCALES`. Zero iff feasible;
     continuously differentiable."""
     total = 0.0
     for name, g in values.items():

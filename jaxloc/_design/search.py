@@ -67,7 +67,7 @@ def simulate_formation(formation: Formation, scenario: Scenario, key: PRNGKeyArr
 
     **Returns:** `(poses, observations, placement, all_visible)`: the true
     [`jaxloc.CyclePoses`][] in `W`, the [`jaxloc.CycleObservations`][], the
-    [`Placement`][] in `E` (for fixed moves from [`place_fixed`][], which places the
+    [`jaxloc.Placement`][] in `E` (for fixed moves from [`jaxloc.place_fixed`][], which places the
     robots exactly where the simulator does, as plain matrices), and whether every
     required sighting exists (and the robots keep `min_separation`).
     """
@@ -130,7 +130,7 @@ def crlb_objective(
 
     **Returns:** `(value, aux)` with `aux` holding `"trace"` `(K, 4)` (m^2),
     `"feasible"` `(K,)` (every required sighting exists), and `"penalty_inputs"`, the
-    placements `(K, ...)`, for [`design_penalty`][].
+    placements `(K, ...)`, for [`jaxloc.design_penalty`][].
     """
     if criterion not in CRITERIA:
         raise ValueError(f"`criterion` must be one of {CRITERIA}; got {criterion!r}.")
@@ -167,7 +167,7 @@ def mc_objective(
     refined estimator's squared final-position error, $\frac{1}{K_\mathrm{ok}}
     \sum_k \sum_c w_c \|\hat p_{c,k} - p_{c,k}\|^2$ (m^2), differentiable.
 
-    Each draw simulates the cycle ([`simulate_formation`][]; the key sets the moves, if
+    Each draw simulates the cycle ([`jaxloc.simulate_formation`][]; the key sets the moves, if
     random, and every noise sample), starts from the closed-form `"robust"` estimate
     (treated as a constant: the optimum does not depend on the start) and refines with
     [`jaxloc.refine_cycle`][]; gradients go through the solver by optimistix's implicit
@@ -430,16 +430,16 @@ def design_formation(
       [`jaxloc.formation_filter`][].
     - `weights`: per-camera weights (C, C1, C2, C3).
     - `num_starts`, `num_draws`, `iterations`: sizes (static).
-    - `limits`, `penalty_weight`, `feasibility_tol`: constraints (see [`Limits`][]).
+    - `limits`, `penalty_weight`, `feasibility_tol`: constraints (see [`jaxloc.Limits`][]).
     - `strict_steps`: apply the margins to every step of every drawn cycle, or only to the
-      initial formation (later steps need only be in view); see [`design_penalty`][].
+      initial formation (later steps need only be in view); see [`jaxloc.design_penalty`][].
       Default (`None`): every step for fixed moves; the initial formation for random moves
       (the simulator's resampling accepts moves that end anywhere in view, so full margins
       on drawn moves over-constrain: measured, it shrank the moves to 0.3 m and doubled
       the Monte Carlo error of the overhead camera).
     - `rtol`, `atol`: BFGS tolerances (normalized units).
 
-    **Returns:** a [`DesignResult`][].
+    **Returns:** a [`jaxloc.DesignResult`][].
     """
     if num_starts < 1 or num_draws < 1 or iterations < 1:
         raise ValueError(
@@ -577,7 +577,7 @@ def objective_value(
     weights=(1.0, 0.0, 0.0, 0.0),
     num_draws: int = 32,
 ) -> Float[Array, ""]:
-    """The unpenalized objective of [`design_formation`][] at `formation` with the draws
+    """The unpenalized objective of [`jaxloc.design_formation`][] at `formation` with the draws
     it would use for `key` (same split), e.g. to compare formations on common draws."""
     k_draws, _ = jr.split(key)
     weights = tuple(float(w) for w in weights)

@@ -98,19 +98,34 @@ def covariance_of_tangent(
     )
 
 
-def with_offset(
-    covariance: CycleCovariance, offset: Float[Array, " n"], T_place, T_over, strategy: str
-) -> CycleCovariance:
-    """`covariance` plus `offset offset^T` in the tangent (and its image in the position
-    and rotation blocks, to first order): the second moment of an estimate known to be
-    `offset` away from the estimator whose covariance is given."""
+def final_offsets(
+    offset: Float[Array, " n"], T_place, T_over, strategy: str
+) -> tuple[Float[Array, "4 3"], Float[Array, "4 3"]]:
+    """The change of the end-of-cycle (C, C1, C2, C3) positions (m, in `W`) and tangent
+    rotations (rad) when the tangent moves by `offset`, to first order."""
     zero = jnp.zeros_like(offset)
     _, dp = jax.jvp(_final_positions(T_place, T_over, strategy), (zero,), (offset,))
     dr = jnp.einsum("cin,n->ci", jnp.asarray(_final_selection(strategy), offset.dtype), offset)
+    return dp, dr
+
+
+def with_offset(
+    covariance: CycleCovariance,
+    offset: Float[Array, " n"],
+    position_offset: Float[Array, "4 3"],
+    rotation_offset: Float[Array, "4 3"],
+) -> CycleCovariance:
+    """`covariance` plus the outer products of an estimate's known offsets from the
+    estimator whose covariance is given (tangent `(n,)`; end-of-cycle positions and
+    rotations `(4, 3)`): the estimate's second moment about the truth."""
+
+    def outer(d):
+        return d[..., :, None] * d[..., None, :]
+
     return CycleCovariance(
-        tangent=covariance.tangent + offset[:, None] * offset[None, :],
-        position=covariance.position + dp[:, :, None] * dp[:, None, :],
-        rotation=covariance.rotation + dr[:, :, None] * dr[:, None, :],
+        tangent=covariance.tangent + outer(offset),
+        position=covariance.position + outer(position_offset),
+        rotation=covariance.rotation + outer(rotation_offset),
         ok=covariance.ok,
     )
 

@@ -25,15 +25,19 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   moves, a near-collinear formation).
 """
 
+import jax
 import jax.numpy as jnp
+import jaxlie
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._core.linalg import gram, spd_inverse
 from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, FitCheck
+from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
-from .covariance import covariance_of_tangent, with_offset
-from .measurements import CycleData, residuals_and_jacobian
+from .covariance import covariance_of_tangent, final_offsets, with_offset
+from .measurements import CycleData, residuals_and_jacobian, unpack, whitened
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -48,6 +52,17 @@ MAX_RELATIVE_POSITION_BOUND = 1.0
 #: Largest rotation bound (RMSE, rad) of an end-of-cycle pose for it to count as
 #: observable (~57 deg; the paper's bounds are 0.5-2 deg).
 MAX_ROTATION_BOUND = 1.0
+#: Two distinct minima whose chi-squares differ by less than this (a likelihood ratio
+#: below e^2 ~ 7) make an estimate `ambiguous`.
+AMBIGUITY_MARGIN = 4.0
+#: Two solutions whose overhead cameras are farther apart than this (m) are distinct
+#: minima.
+DISTINCT_MINIMUM = 0.1
+#: Gauss--Newton steps taken from a closed-form estimate towards the maximum-likelihood
+#: optimum, to measure the estimate's offset from it (a fixed count, so a batch of gates
+#: never waits for a straggler). From a closed form ~1 m away one linearized step
+#: misjudges the offset; four reach the optimum to well below its own uncertainty.
+POLISH_STEPS = 4
 
 
 def chi2_limit(
@@ -76,23 +91,112 @@ def observable(covariance: CycleCovariance, size) -> Array:
     pos = jnp.sqrt(jnp.trace(covariance.position, axis1=-2, axis2=-1))
     rot = jnp.sqrt(jnp.trace(covariance.rotation, axis1=-2, axis2=-1))
     ok = covariance.ok & jnp.all(jnp.isfinite(pos)) & jnp.all(jnp.isfinite(rot))
-    return ok & jnp.all(pos <= MAX_RELATIVE_POSITION_BOUND * size) & jnp.all(
-        rot <= MAX_ROTATION_BOUND
+    return (
+        ok & jnp.all(pos <= MAX_RELATIVE_POSITION_BOUND * size) & jnp.all(rot <= MAX_ROTATION_BOUND)
     )
 
 
+def _gauss_newton_step(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """One undamped Gauss--Newton step on the whitened residuals (no step where the
+    information is singular or the step not finite)."""
+    r, J = residuals_and_jacobian(T_place, T_over, data, rig, strategy)
+    covariance, ok = spd_inverse(gram(J))
+    step = -covariance @ (J.T @ r)
+    step = jnp.where(ok & jnp.all(jnp.isfinite(step)), step, 0.0)
+    return unpack(step, T_place, T_over)
+
+
+def polish_to_optimum(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """`POLISH_STEPS` Gauss--Newton steps from `(T_place, T_over)`: the nearby
+    maximum-likelihood optimum, to well within its uncertainty."""
+    return jax.lax.fori_loop(
+        0,
+        POLISH_STEPS,
+        lambda _, x: _gauss_newton_step(*x, data, rig, strategy),
+        (T_place, T_over),
+    )
+
+
+def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
+    """`ambiguous` where a `successful` estimate has a distinct rival minimum whose
+    chi-square `runner_up_chi2` is within `AMBIGUITY_MARGIN` of its own."""
+    close = runner_up_chi2 - chi2 < AMBIGUITY_MARGIN
+    return RESULTS.where((result == RESULTS.successful) & close, RESULTS.ambiguous, result)
+
+
+def _runner_up_chi2(rivals, T_over, data: CycleData, rig: Rig, strategy: str):
+    """The lowest chi-square of the rival starts `(T_place (k, placements, 7), T_over
+    (k, 7), active (k,))` polished to their optima, among those distinct from the
+    solution whose overhead camera is at `T_over` (`inf` if none)."""
+    rival_place, rival_over, active = rivals
+
+    def one(P, O):
+        P, O = polish_to_optimum(P, O, data, rig, strategy)
+        return jnp.sum(whitened(P, O, data, rig, strategy) ** 2), O
+
+    chi2, O = jax.vmap(one)(rival_place, rival_over)
+    distinct = jnp.sum((O[:, 4:] - T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
+    return jnp.min(jnp.where(active & distinct & jnp.isfinite(chi2), chi2, jnp.inf))
+
+
+def _tangent_offset(T_place, T_over, T_place0, T_over0):
+    """The tangent `delta` (layout of `unpack`) with `unpack(delta, T_place0, T_over0)`
+    equal to `(T_place, T_over)`: each pose's `log(T0^-1 T)`."""
+
+    def log_between(a, b):
+        return (jaxlie.SE3(b).inverse() @ jaxlie.SE3(a)).log()
+
+    d = jax.vmap(log_between)(T_place[1:], T_place0[1:]).reshape(-1)
+    return jnp.concatenate([d, log_between(T_over, T_over0)])
+
+
+def _final_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
+    """End-of-cycle poses (C's optical frame, C1, C2, C3) of placements `T_place`."""
+    return jnp.concatenate([T_over[None], T_place[placement_ids(strategy)[-1]]])
+
+
+def _pose_differences(T_a, T_b) -> tuple[Float[Array, "4 3"], Float[Array, "4 3"]]:
+    """`(position a - b, log(R_b^-1 R_a))` of two stacks of poses `(4, 7)`: the exact
+    counterparts of the tangent's position and rotation blocks."""
+    a, b = jaxlie.SE3(T_a), jaxlie.SE3(T_b)
+    rotation = jax.vmap(lambda ra, rb: (rb.inverse() @ ra).log())(a.rotation(), b.rotation())
+    return a.translation() - b.translation(), rotation
+
+
 def check(
-    T_place, T_over, data: CycleData, rig: Rig, strategy: str, solver_result: RESULTS
+    T_place,
+    T_over,
+    data: CycleData,
+    rig: Rig,
+    strategy: str,
+    solver_result: RESULTS,
+    *,
+    polish: bool = True,
+    final_poses: Float[Array, "4 7"] | None = None,
+    rivals=None,
 ) -> tuple[RESULTS, FitCheck, CycleCovariance]:
     """Gate an estimate whose placements are at `T_place` and whose overhead camera is at
     `T_over`: `(result, checks, covariance)`. `result` is `solver_result` when that is a
     failure; else `unobservable` or `inconsistent_fit` when a gate fails, else
-    `successful`. The covariance is the estimate's own, to first order: the
-    maximum-likelihood estimator's `(J^T J)^-1` at the estimate plus `d d^T`, `d` the step
-    to the linearized optimum (zero at a converged refinement; a closed form's error is
-    that offset plus the optimum's own error)."""
+    `successful`.
+
+    With `polish` (for an estimate that is not a converged refinement, e.g. a closed
+    form) the gates look at the point `POLISH_STEPS` Gauss--Newton steps away, the
+    maximum-likelihood optimum to well within its uncertainty. The covariance is the
+    estimate's own, to first order: the maximum-likelihood estimator's `(J^T J)^-1` there
+    plus `d d^T`, `d` the estimate's offset from that point and from the optimum of the
+    model linearized there (zero at a converged refinement). `final_poses`: the
+    estimate's own end-of-cycle poses of (C's optical frame, C1, C2, C3) in `W`
+    (`wxyz_xyz`), where they differ from the placements' (a closed form solves a
+    stationary robot's pose again at every step); default: the placements'. `rivals`:
+    other starts `(T_place (k, placements, 7), T_over (k, 7), active (k,))` (the
+    closed form's other local minima); polished too, a distinct one that fits almost as
+    well makes the estimate `ambiguous`."""
     dtype = T_place.dtype
-    r, J = residuals_and_jacobian(T_place, T_over, data, rig, strategy)
+    P, O = T_place, T_over
+    if polish:
+        P, O = polish_to_optimum(P, O, data, rig, strategy)
+    r, J = residuals_and_jacobian(P, O, data, rig, strategy)
     ml_covariance, ok_information = spd_inverse(gram(J))
     unknowns = J.shape[1]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
@@ -101,17 +205,25 @@ def check(
     # The step to the minimum of the model linearized here, and the misfit left there.
     step = -ml_covariance @ g
     chi2_min = jnp.maximum(chi2 + g @ step, 0.0)
-    ml = covariance_of_tangent(ml_covariance, ok_information, T_place, T_over, strategy)
-    # The estimate's own covariance: the maximum-likelihood estimator's, plus the known
-    # offset of this estimate from the linearized optimum (zero at a converged refinement;
-    # a closed form's error is that offset plus the optimum's error).
-    covariance = with_offset(ml, -step, T_place, T_over, strategy)
+    ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy)
+    offset = -step
+    dp, dr = final_offsets(offset, P, O, strategy)
+    if polish:
+        own = _final_poses(T_place, T_over, strategy) if final_poses is None else final_poses
+        own_dp, own_dr = _pose_differences(own, _final_poses(P, O, strategy))
+        offset = offset + _tangent_offset(T_place, T_over, P, O)
+        moved = jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
+        dp = dp + jnp.where(moved, own_dp, 0.0)
+        dr = dr + jnp.where(moved, own_dr, 0.0)
+    covariance = with_offset(ml, offset, dp, dr)
     limit = chi2_limit(dof, data.num_sightings, data.num_odometry, rig.noise_model, dtype)
-    is_observable = observable(ml, formation_size(T_place)) & (dof > 0)
+    is_observable = observable(ml, formation_size(P)) & (dof > 0)
     ok = solver_result == RESULTS.successful
     result = RESULTS.where(ok & ~is_observable, RESULTS.unobservable, solver_result)
     result = RESULTS.where(
         (result == RESULTS.successful) & ~(chi2_min <= limit), RESULTS.inconsistent_fit, result
     )
+    if rivals is not None:
+        result = mark_ambiguous(result, chi2, _runner_up_chi2(rivals, O, data, rig, strategy))
     checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable)
     return result, checks, covariance

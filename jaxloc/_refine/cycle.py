@@ -28,12 +28,12 @@ from .._core.least_squares import (
 )
 from .._core.numerics import safe_sqrt
 from .._core.results import raise_if_failed, RESULTS
-from .._cycle.estimate import CycleEstimate, CycleStarts
-from .._cycle.layout import first_sighting, placement_ids
+from .._cycle.estimate import CycleEstimate, start_placements
+from .._cycle.layout import placement_ids
 from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
-from .._model.gates import check
+from .._model.gates import check, DISTINCT_MINIMUM, mark_ambiguous
 from .._model.measurements import (
     cycle_data,
     CycleData,
@@ -52,15 +52,9 @@ CYCLE_SOLVERS = ("lm", "optx-lm", "optx-gn")
 #: kernel counts as converged, at the default tolerances (`rtol = atol = 1e-6`); it scales
 #: with the square of the tighter one.
 _NEGLIGIBLE_DECREASE = 1e-4
-#: Two distinct converged minima whose costs differ by less than this (chi-square units,
-#: a likelihood ratio below e^2 ~ 7) make a multi-start refinement `ambiguous`.
-_AMBIGUITY_MARGIN = 4.0
 #: Steps of a multi-start refinement's first phase, where every start is refined (the
 #: whole refinement still takes at most `max_steps`).
 _MULTI_START_STEPS = 6
-#: Two converged solutions whose overhead cameras are farther apart than this (m) are
-#: distinct minima.
-_DISTINCT_MINIMUM = 0.1
 
 
 @ft.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -130,24 +124,6 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active):
     return out.x[0], out.x[1], out.num_steps, out.converged
 
 
-def _alternative_starts(starts: CycleStarts, scales, strategy: str, T0_place):
-    """The closed form's other local minima as starts: `(T_place, T_over, active)` with a
-    leading axis of alternatives."""
-    ks, _ = first_sighting(strategy)
-    factor = starts.scales / scales[None]
-    T_place = jnp.concatenate(
-        [jnp.broadcast_to(T0_place[:, :4], (factor.shape[0],) + T0_place[:, :4].shape),
-         T0_place[None, :, 4:] * factor[:, ks, None]],
-        axis=-1,
-    )  # fmt: skip
-    T_over = starts.T_world_overhead
-    active = starts.ok & jnp.all(jnp.isfinite(T_place), axis=(1, 2))
-    active = active & jnp.all(jnp.isfinite(T_over), axis=1)
-    ident = jnp.zeros(7, T_over.dtype).at[0].set(1.0)
-    T_place = jnp.where(active[:, None, None], T_place, T0_place[None])
-    return T_place, jnp.where(active[:, None], T_over, ident[None]), active
-
-
 def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol):
     """Refine every start for a few steps; the one with the lowest cost goes on alone.
 
@@ -190,18 +166,14 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol):
         jnp.zeros(n_jobs, bool),
         jnp.full(n_jobs, jnp.inf, dtype),
     )
-    (T_all, O_all, steps_all, conv_all, chi2_all), _ = jax.lax.scan(
-        job, slots, jnp.arange(n_jobs)
-    )
+    (T_all, O_all, steps_all, conv_all, chi2_all), _ = jax.lax.scan(job, slots, jnp.arange(n_jobs))
     chi2 = masked_chi2(chi2_all[:n_lanes])
     converged1 = conv_all[:n_lanes]
     pick = jnp.argmin(chi2)
     T_place, T_over = T_all[n_lanes], O_all[n_lanes]
     num_steps = steps_all[pick] + steps_all[n_lanes]  # the solution's own steps
     converged = converged1[pick] | conv_all[n_lanes]
-    distinct = (
-        jnp.sum((O_all[:n_lanes, 4:] - T_over[None, 4:]) ** 2, axis=-1) > _DISTINCT_MINIMUM**2
-    )
+    distinct = jnp.sum((O_all[:n_lanes, 4:] - T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
     runner_up_chi2 = jnp.min(jnp.where(converged1 & distinct, chi2, jnp.inf))
     return T_place, T_over, num_steps, converged, pick, runner_up_chi2
 
@@ -218,7 +190,7 @@ def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, set
         out = _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active)
         return *out, {}
     T1_place, T1_over, active1 = jax.lax.stop_gradient(
-        _alternative_starts(estimate.alternatives, estimate.scales, strategy, T0_place)
+        start_placements(estimate.alternatives, estimate.scales, strategy, T0_place)
     )
     starts = (
         jnp.concatenate([T0_place[None], T1_place]),
@@ -249,15 +221,20 @@ def _optx_refine(T0_place, T0_over, data, rig, strategy, solver, settings):
 def _start(estimate: CycleEstimate, strategy: str):
     """The estimate's placements as a start (finite: else the identity) and whether the
     refinement may run: the estimate is a usable start, successful or only flagged by the
-    fit gate (a refinement may find the consistent minimum the closed form missed)."""
+    fit gate (a refinement may find the consistent minimum the closed form missed), or
+    `ambiguous` by the gates with its rival minima as the other starts (the multi-start
+    decides)."""
     T0_place, T0_over = estimate_placements(estimate.poses, strategy)
     finite = jnp.all(jnp.isfinite(T0_place)) & jnp.all(jnp.isfinite(T0_over))
     ident = jnp.zeros(7, T0_place.dtype).at[0].set(1.0)
     T0_place = jnp.where(finite, T0_place, ident)
     T0_over = jnp.where(finite, T0_over, ident)
-    usable = (estimate.result == RESULTS.successful) | (
-        estimate.result == RESULTS.inconsistent_fit
-    )
+    usable = (estimate.result == RESULTS.successful) | (estimate.result == RESULTS.inconsistent_fit)
+    if estimate.alternatives is not None:
+        # Ambiguous by the gates (a rival minimum fits almost as well), not by the solver
+        # (several exact P3P roots, which no refinement can tell apart).
+        rival = estimate.checks.solver_result == RESULTS.successful
+        usable = usable | ((estimate.result == RESULTS.ambiguous) & rival)
     return T0_place, T0_over, finite & usable
 
 
@@ -266,9 +243,9 @@ def _statistics(T_place, T_over, data: CycleData, rig, strategy):
     mutual, overhead, lengths = predict(T_place, T_over, rig, strategy)
     m_used = data.mutual_weight > 0
     o_used = data.overhead_weight > 0
-    e2 = jnp.sum(
-        jnp.where(m_used, jnp.sum((mutual - data.mutual_pixels) ** 2, -1), 0.0)
-    ) + jnp.sum(jnp.where(o_used, jnp.sum((overhead - data.overhead_pixels) ** 2, -1), 0.0))
+    e2 = jnp.sum(jnp.where(m_used, jnp.sum((mutual - data.mutual_pixels) ** 2, -1), 0.0)) + jnp.sum(
+        jnp.where(o_used, jnp.sum((overhead - data.overhead_pixels) ** 2, -1), 0.0)
+    )
     count = jnp.maximum(jnp.sum(m_used) + jnp.sum(o_used), 1).astype(T_place.dtype)
     return {
         "rms_pixel_error": safe_sqrt(e2 / count),
@@ -303,12 +280,9 @@ def _refine_cycle_impl(observations, rig, estimate, *, solver, max_steps, rtol, 
     ok = result == RESULTS.successful
     T_place = jnp.where(ok, T_place, T0_place)
     T_over = jnp.where(ok, T_over, T0_over)
-    result, checks, covariance = check(T_place, T_over, data, rig, strategy, result)
+    result, checks, covariance = check(T_place, T_over, data, rig, strategy, result, polish=False)
     if "runner_up_chi2" in stats:
-        ambiguous = stats["runner_up_chi2"] - checks.chi2 < _AMBIGUITY_MARGIN
-        result = RESULTS.where(
-            (result == RESULTS.successful) & ambiguous, RESULTS.ambiguous, result
-        )
+        result = mark_ambiguous(result, checks.chi2, stats["runner_up_chi2"])
     solved = ok
     ids = placement_ids(strategy)
     T_world_body = jnp.where(solved, T_place[ids], estimate.poses.T_world_body.wxyz_xyz)

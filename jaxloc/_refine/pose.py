@@ -30,9 +30,9 @@ from .._solvers.pose_problem import identity_like, no_alternatives, PoseSolution
 
 
 LOSSES = (None, "huber", "cauchy")
-#: Solvers of [`jaxloc.refine_overhead_pose`][]: jaxloc's batched Levenberg--Marquardt /
-#: Gauss--Newton with the chain-rule Jacobian, or optimistix's on the same residuals.
 POSE_SOLVERS = ("lm", "gn", "optx-lm", "optx-gn")
+"""Solvers of [`jaxloc.refine_overhead_pose`][]: jaxloc's batched Levenberg--Marquardt /
+Gauss--Newton with the chain-rule Jacobian, or optimistix's on the same residuals."""
 #: Default `loss_scale` of each robust loss, in units of `sigma` (95% asymptotic
 #: efficiency under Gaussian noise).
 DEFAULT_LOSS_SCALE = {"huber": 1.345, "cauchy": 2.3849}

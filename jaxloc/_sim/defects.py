@@ -22,7 +22,6 @@ from .._cycle.rig import ground_cameras_apply, Rig
 from .._cycle.sightings import matvec
 
 
-#: The defects of [`jaxloc.corrupt_observations`][], by index.
 DEFECTS = (
     "clean",  # no defect
     "nan",  # one sighting's bearing and pixel NaN, still marked visible
@@ -35,6 +34,11 @@ DEFECTS = (
     "scaled_odometry",  # one odometry distance times a factor in [0.5, 2]
     "negative_odometry",  # one odometry distance with the wrong sign
 )
+"""The defects of [`jaxloc.corrupt_observations`][], by index: "clean" (none), "nan" and
+"inf" (one sighting non-finite, still marked visible), "zero" and "negated" (one bearing
+the zero vector or pointing backwards), "swapped" (two sightings of one image exchanged),
+"outlier" (one pixel moved 30-100 px), "missing" (one sighting not made),
+"scaled_odometry" (one distance times a factor in [0.5, 2]) and "negative_odometry"."""
 
 
 def _sighting_mask(observations: CycleObservations, key):

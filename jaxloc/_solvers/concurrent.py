@@ -19,7 +19,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._core.least_squares import levenberg_marquardt
+from .._core.least_squares import gauss_newton
 from .._core.numerics import safe_norm, safe_normalize
 from .._core.poses import apply, rplus
 from .._cycle.layout import move_start_step, moving_robot, reference_robots
@@ -37,22 +37,11 @@ def _distance(a: Float[Array, "3"], b: Float[Array, "3"]) -> Array:
 
 def _gauss_newton(model, x0, *, num_residuals: int, steps: int, lam: float, retract=None):
     """`steps` Gauss--Newton steps (no convergence test) with a fixed tiny damping `lam`
-    that regularizes directions no residual touches: the least-squares kernel's undamped
-    case."""
-    out = levenberg_marquardt(
-        model,
-        (lambda x, delta: x + delta) if retract is None else retract,
-        lambda x: jnp.zeros((), x.dtype),
-        x0,
-        num_residuals=num_residuals,
-        num_unknowns=x0.shape[0],
-        max_steps=steps,
-        rtol=0.0,
-        atol=0.0,
-        damped=False,
-        lam0=lam,
-    )
-    return out.x
+    that regularizes directions no residual touches (reverse-differentiable)."""
+    del num_residuals
+    if retract is None:
+        retract = lambda x, delta: x + delta  # noqa: E731
+    return gauss_newton(model, retract, x0, steps=steps, lam=lam)
 
 
 def _ratio_candidates(p_before: Float[Array, "2 3"], p_after: Float[Array, "2 3"], d, w):

@@ -8,13 +8,14 @@ placement it saw ([`jaxloc.solve_overhead_pose`][]). Every estimate passes the g
 is called `successful`.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 
 from .._core.poses import inverse
 from .._core.results import raise_if_failed, RESULTS
-from .._cycle.estimate import CycleEstimate, CycleStarts
+from .._cycle.estimate import CycleEstimate, CycleStarts, start_placements
 from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
@@ -55,6 +56,20 @@ def _observations_ok(observations: CycleObservations):
     return finite, jnp.all(d >= 0) & jnp.all(s > 0)
 
 
+def _overhead_with_mirror(points, bearings, mask, scales):
+    """The robust overhead pose and, as the one other start, the overhead solver's
+    runner-up pose (e.g. the mirror pose of nearly coplanar points) with the same
+    ground formation."""
+    pose_sol = solve_overhead_pose(
+        points, bearings, mask, method="robust", throw=False, runner_up=True
+    )
+    mirror = inverse(jaxlie.SE3(pose_sol.alternatives.wxyz_xyz[0])).wxyz_xyz
+    starts = CycleStarts(
+        scales=scales[None], T_world_overhead=mirror[None], ok=pose_sol.alternatives_ok[:1]
+    )
+    return pose_sol, starts
+
+
 def _overhead_with_starts(observations, points, bearings, mask, scales, runner_up):
     """The robust overhead pose with the concurrent strategy's other starts: one batched
     solve for the winning and the runner-up scales' points (a smaller program)."""
@@ -69,13 +84,13 @@ def _overhead_with_starts(observations, points, bearings, mask, scales, runner_u
     mirror = inverse(jaxlie.SE3(both.alternatives.wxyz_xyz[0, 0])).wxyz_xyz
     starts = CycleStarts(
         scales=jnp.stack([second, scales]),
-        T_world_overhead=jnp.stack(
-            [inverse(jaxlie.SE3(both.pose.wxyz_xyz[1])).wxyz_xyz, mirror]
+        T_world_overhead=jnp.stack([inverse(jaxlie.SE3(both.pose.wxyz_xyz[1])).wxyz_xyz, mirror]),
+        ok=jnp.stack(
+            [
+                second_ok & (both.result == RESULTS.successful)[1],
+                both.alternatives_ok[0, 0],
+            ]
         ),
-        ok=jnp.stack([
-            second_ok & (both.result == RESULTS.successful)[1],
-            both.alternatives_ok[0, 0],
-        ]),
     )
     return pose_sol, starts
 
@@ -89,14 +104,22 @@ def _closed_form_result(pose_result, scale_ok, mutual_result, odometry):
     return RESULTS.where(finite, result, RESULTS.nonfinite_observation)
 
 
-def _gated(data, rig, strategy, poses: CyclePoses, solver_result):
-    """Apply the gates at the closed-form estimate `poses`."""
+def _gated(data, rig, strategy, poses: CyclePoses, solver_result, scales, starts):
+    """Apply the gates at the closed-form estimate `poses` (its other `starts`, a
+    [`jaxloc.CycleStarts`][] or `None`, as rivals)."""
     T_place, T_over = estimate_placements(poses, strategy)
     finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
     ident = jnp.zeros(7, T_place.dtype).at[0].set(1.0)
     T_place = jnp.where(finite, T_place, ident)
     T_over = jnp.where(finite, T_over, ident)
-    return check(T_place, T_over, data, rig, strategy, solver_result)
+    final = jnp.concatenate(
+        [poses.T_world_overhead.wxyz_xyz[None], poses.T_world_body.wxyz_xyz[-1]]
+    )
+    final = jnp.where(jnp.all(jnp.isfinite(final)), final, ident)
+    rivals = None if starts is None else start_placements(starts, scales, strategy, T_place)
+    return check(
+        T_place, T_over, data, rig, strategy, solver_result, final_poses=final, rivals=rivals
+    )
 
 
 def localize_cycle_methods(
@@ -122,16 +145,25 @@ def localize_cycle_methods(
             pose_sol, alternatives = _overhead_with_starts(
                 observations, points, bearings, mask, scales, runner_up
             )
+        elif method == "robust":
+            pose_sol, alternatives = _overhead_with_mirror(points, bearings, mask, scales)
         else:
             pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
         stats = dict(pose_sol.stats, min_angle=min_angle, odometry_rms=odo_rms)
         result = _closed_form_result(pose_sol.result, scale_ok, mutual_result, odometry)
         poses = CyclePoses(T, inverse(pose_sol.pose))
         estimates.append((poses, result, stats, alternatives))
-    stacked = jax.tree.map(lambda *x: jnp.stack(x), *[(e[0], e[1]) for e in estimates])
+    rivals = [e[3] for e in estimates]
+    some = next((r for r in rivals if r is not None), None)
+    if some is not None:  # one structure for the vmap: rivals that do not exist
+        absent = eqx.tree_at(lambda s: s.ok, some, jnp.zeros_like(some.ok))
+        rivals = [absent if r is None else r for r in rivals]
+    stacked = jax.tree.map(
+        lambda *x: jnp.stack(x), *[(e[0], e[1], r) for e, r in zip(estimates, rivals)]
+    )
     data = cycle_data(observations, rig)
     gated, checks, covariance = jax.vmap(
-        lambda p, r: _gated(data, rig, observations.strategy, p, r)
+        lambda p, r, starts: _gated(data, rig, observations.strategy, p, r, scales, starts)
     )(*stacked)
     return [
         CycleEstimate(

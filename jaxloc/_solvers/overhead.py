@@ -307,7 +307,7 @@ def solve_overhead_pose(
     (`ValueError`). Safe under `jit`, `vmap` and `grad`: derivatives are those of the
     polished minimum of the chordal error w.r.t. `points_world` and `bearings` (implicit
     function theorem; the candidate choice is piecewise constant). For large batches on
-    CPU, [`map_problems`][] is faster than `jax.jit(jax.vmap(...))`.
+    CPU, [`jaxloc.map_problems`][] is faster than `jax.jit(jax.vmap(...))`.
     """
     if method == "robust":
         X, b, m = check_inputs(

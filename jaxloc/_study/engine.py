@@ -55,14 +55,14 @@ def _mesh() -> Mesh:
     return Mesh(np.array(jax.devices()), ("trials",))
 
 
-#: Trials per vectorized step inside a chunk. Each device walks its share of a chunk in
-#: `lax.map` steps of this many `vmap`-ed trials: the working set of a step stays in cache,
-#: and an iterative solver's batch waits only for the slowest of these trials, not of the
-#: whole chunk (DESIGN §8). Chunks of ~3400 paper-scenario trials on 2 CPU devices ran in
-#: 3.2 / 3.3 / 3.6 s (concurrent) and 1.4 / 1.4 / 1.7 s (sequential) with steps of 16 /
-#: 32 / 64: smaller steps wait for fewer stragglers of the refinement, larger ones
-#: vectorize better. A CPU setting: an accelerator wants the whole chunk in one step.
 MICRO_BATCH = 32
+"""Trials per vectorized step inside a chunk. Each device walks its share of a chunk in
+`lax.map` steps of this many `vmap`-ed trials: the working set of a step stays in cache,
+and an iterative solver's batch waits only for the slowest of these trials, not of the
+whole chunk (DESIGN §8). Chunks of ~3400 paper-scenario trials on 2 CPU devices ran in
+3.2 / 3.3 / 3.6 s (concurrent) and 1.4 / 1.4 / 1.7 s (sequential) with steps of 16 /
+32 / 64: smaller steps wait for fewer stragglers of the refinement, larger ones
+vectorize better. A CPU setting: an accelerator wants the whole chunk in one step."""
 #: XLA options of jaxloc's large programs: a study's chunk (below) and the formation
 #: search (`jaxloc._design`). XLA:CPU's newer fusion emitters take ~25% longer
 #: to compile a cycle trial (measured on the paper's scenario, chunk of 4096: 49 s -> 37 s
@@ -225,7 +225,27 @@ def _check_study_args(n_trials, chunk_size, methods, seed) -> tuple[str, ...]:
     return tuple(methods)
 
 
-def _study_chunks(
+ChunkRunner = Callable[[Sequence[int], Callable[[], None]], Iterator[dict[str, np.ndarray]]]
+"""Computes a study's chunks: called with the indices of the chunks to compute (in
+order) and `on_done`, it returns an iterator over their arrays (as
+[`jaxloc.run_chunk`][] returns them) in that order, and calls `on_done()` whenever a
+chunk finishes, in whatever order they finish. [`local_runner`][] computes them here, one
+after the other; `jaxloc._study.cluster` as Ray tasks."""
+
+
+def local_runner(scenario: Scenario, seed: int, chunk_size: int, methods) -> ChunkRunner:
+    """The [`ChunkRunner`][] that computes each chunk in this process, when asked for."""
+
+    def run(chunks: Sequence[int], on_done: Callable[[], None]):
+        for c in chunks:
+            arrays = run_chunk(scenario, seed, c, chunk_size, methods)
+            on_done()
+            yield arrays
+
+    return run
+
+
+def study_chunks(
     scenario: Scenario,
     n_trials: int,
     seed: int,
@@ -233,31 +253,42 @@ def _study_chunks(
     methods: tuple[str, ...],
     out_dir: str | None,
     progress: bool,
+    runner: ChunkRunner | None = None,
 ) -> Iterator[dict[str, np.ndarray]]:
-    """Validate a study's settings, then yield its chunks' arrays in order (computed, or
-    read back from `out_dir` when a previous run wrote them and they pass the checks of
-    `jaxloc._study.chunks`)."""
+    """Validate a study's settings, then yield its chunks' arrays in order: read back
+    from `out_dir` when a previous run wrote them and they pass the checks of
+    `jaxloc._study.chunks`, else computed by `runner` (default: [`local_runner`][]) and
+    written to `out_dir`."""
     methods = _check_study_args(n_trials, chunk_size, methods, seed)
+    runner = runner or local_runner(scenario, seed, chunk_size, methods)
     manifest = None
     if out_dir is not None:  # only a study on disk needs the scenario's file form
         manifest = study_manifest(scenario_to_dict(scenario), seed, chunk_size, methods)
         open_study(out_dir, manifest)
+    n_chunks = -(-n_trials // chunk_size)
+    paths = [None if out_dir is None else chunk_path(out_dir, c) for c in range(n_chunks)]
+    todo = [c for c in range(n_chunks) if paths[c] is None or not os.path.exists(paths[c])]
+    to_compute = set(todo)
+    bar = ProgressBar(progress, n_trials, n_chunks)
+    on_done = bar.chunk_done if bar is not None else (lambda: None)
+    computed = runner(todo, on_done)
     expected = None
-    bar = ProgressBar(progress, n_trials)
     done = 0
     t0 = time.perf_counter()
-    for c in range(-(-n_trials // chunk_size)):
+    for c in range(n_chunks):
         size = min(chunk_size, n_trials - c * chunk_size)
-        path = None if out_dir is None else chunk_path(out_dir, c)
-        arrays = None
-        if path is not None and os.path.exists(path):
+        if c in to_compute:
+            arrays = next(computed)
+        else:
             expected = expected or chunk_fields(scenario, chunk_size, methods)
-            arrays = read_chunk(path, expected, c * chunk_size, manifest)
-        if arrays is None:
-            # Always compute whole chunks so a resumed, longer study gets the same trials.
-            arrays = run_chunk(scenario, seed, c, chunk_size, methods)
-            if path is not None:
-                write_chunk(path, arrays, manifest)
+            arrays = read_chunk(paths[c], expected, c * chunk_size, manifest)
+            if arrays is not None:
+                on_done()
+            else:  # damaged: recomputed (whole, so a resumed, longer study gets the same trials)
+                arrays = next(iter(runner([c], on_done)))
+                write_chunk(paths[c], arrays, manifest)
+        if c in to_compute and paths[c] is not None:
+            write_chunk(paths[c], arrays, manifest)
         arrays = {k: v[:size] for k, v in arrays.items()}
         done += size
         if bar is not None:
@@ -301,14 +332,8 @@ def run_study(
     [`jaxloc.stream_study`][]): `"status"` `(n, methods)`, `"position"`, `"rotation"`
     `(n, methods, 4)`, `"ypr"`, `"position_vector"` `(n, methods, 4, 3)`, `"index"` `(n,)`.
     """
-    chunks = []
-    for c, arrays in enumerate(
-        _study_chunks(scenario, n_trials, seed, chunk_size, methods, out_dir, progress)
-    ):
-        chunks.append(arrays)
-        if on_chunk is not None:
-            on_chunk(c, arrays)
-    return {k: np.concatenate([ch[k] for ch in chunks]) for k in chunks[0]}
+    chunks = study_chunks(scenario, n_trials, seed, chunk_size, methods, out_dir, progress)
+    return concatenate_chunks(chunks, on_chunk)
 
 
 def stream_study(
@@ -332,23 +357,43 @@ def stream_study(
 
     **Returns:** [`jaxloc.summarize`][]'s dict, plus `"percentiles": "histogram"`.
     """
+    chunks = study_chunks(scenario, n_trials, seed, chunk_size, methods, out_dir, progress)
+    return summarize_chunks(chunks, methods)
+
+
+def concatenate_chunks(
+    chunks: Iterator[dict[str, np.ndarray]], on_chunk: Callable[[int, dict], None] | None = None
+) -> dict[str, np.ndarray]:
+    """A study's chunks (from [`study_chunks`][]) joined along the trial axis, calling
+    `on_chunk(chunk_index, arrays)` after each: [`jaxloc.run_study`][]'s result."""
+    gathered = []
+    for c, arrays in enumerate(chunks):
+        gathered.append(arrays)
+        if on_chunk is not None:
+            on_chunk(c, arrays)
+    return {k: np.concatenate([ch[k] for ch in gathered]) for k in gathered[0]}
+
+
+def summarize_chunks(chunks: Iterator[dict[str, np.ndarray]], methods) -> dict:
+    """A study's chunks folded one by one into a [`jaxloc.StreamingSummary`][]:
+    [`jaxloc.stream_study`][]'s result."""
     summary = StreamingSummary(tuple(methods))
-    for arrays in _study_chunks(
-        scenario, n_trials, seed, chunk_size, methods, out_dir, progress
-    ):
+    for arrays in chunks:
         summary.update(arrays)
     return summary.result()
 
 
 class ProgressBar:
-    """A rich progress bar showing trials and trials/s (or nothing if disabled)."""
+    """A rich progress bar showing trials, trials/s and chunks finished (or nothing if
+    disabled). Chunks may finish out of order (on a cluster): the bar counts trials as
+    they reach the study in order, and chunks as they finish anywhere."""
 
-    def __new__(cls, enabled: bool, total: int):
+    def __new__(cls, enabled: bool, total: int, n_chunks: int):
         if not enabled:
             return None
         return super().__new__(cls)
 
-    def __init__(self, enabled: bool, total: int):
+    def __init__(self, enabled: bool, total: int, n_chunks: int):
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
 
         self._p = Progress(
@@ -356,10 +401,19 @@ class ProgressBar:
             BarColumn(),
             MofNCompleteColumn(),
             TextColumn("{task.fields[rate]}"),
+            TextColumn("{task.fields[chunks]}"),
             transient=True,
         )
         self._p.start()
-        self._task = self._p.add_task("trials", total=total, rate="")
+        self._n_chunks, self._chunks_done = n_chunks, 0
+        self._task = self._p.add_task("trials", total=total, rate="", chunks=self._chunks_text())
+
+    def _chunks_text(self) -> str:
+        return f"chunks done {self._chunks_done}/{self._n_chunks}"
+
+    def chunk_done(self):
+        self._chunks_done += 1
+        self._p.update(self._task, chunks=self._chunks_text())
 
     def advance(self, n: int, rate: float):
         self._p.update(self._task, advance=n, rate=f"{rate:,.0f} trials/s")

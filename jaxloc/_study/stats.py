@@ -55,7 +55,7 @@ def summarize(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict:
     **Returns:** a JSON-ready dict: `{"n_trials": n, "methods": {method: {"n_ok": ...,
     "failures": {status_name: count}, "cameras": {camera: {"position_m": stats,
     "rotation_rad": stats, "ypr_mean_abs_rad": stats}}}}}`, where `stats` is
-    [`describe`][]'s dict and `ypr_mean_abs` is the mean of the absolute yaw, pitch and
+    [`jaxloc.describe`][]'s dict and `ypr_mean_abs` is the mean of the absolute yaw, pitch and
     roll errors of a trial (the paper's Table I metric). Failed trials are skipped and
     counted by status name.
     """
@@ -127,7 +127,7 @@ def nees_summary(study: dict[str, np.ndarray], methods: tuple[str, ...]) -> dict
     return out
 
 
-#: Error histograms of [`StreamingSummary`][]: log-spaced bins from 1e-12 to 1e3 (m or
+#: Error histograms of [`jaxloc.StreamingSummary`][]: log-spaced bins from 1e-12 to 1e3 (m or
 #: rad), this many per decade; a percentile is read to within one bin, a relative error
 #: below 10**(1/200) - 1 = 1.2% (about 0.6% typical, from interpolation inside the bin).
 BINS_PER_DECADE = 200

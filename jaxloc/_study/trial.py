@@ -21,11 +21,11 @@ from .._sim.simulate import simulate_cycle
 from .._solvers.localize import localize_cycle_methods
 
 
-#: Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
-#: for the overhead camera; "robust": the same chain with jaxloc's planar-safe P3P-based
-#: overhead pose; "refined": joint maximum-likelihood refinement of the whole cycle
-#: started from "robust".
 METHODS = ("paper", "robust", "refined")
+"""Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
+for the overhead camera; "robust": the same chain with jaxloc's planar-safe P3P-based
+overhead pose; "refined": joint maximum-likelihood refinement of the whole cycle
+started from "robust"."""
 #: Levenberg–Marquardt iteration cap of the "refined" method in studies. Under `vmap` a
 #: batch runs as many steps as its slowest trial, so a long tail of rare stragglers would
 #: set the cost of every chunk; trials that hit the cap are reported as

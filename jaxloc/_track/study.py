@@ -151,7 +151,7 @@ def run_track_study(
         manifest = track_manifest(track, seed, chunk_size, cycles, window)
         open_study(out_dir, manifest)
     expected = track_chunk_fields(track, chunk_size, cycles)
-    bar = ProgressBar(progress, n_runs)
+    bar = ProgressBar(progress, n_runs, -(-n_runs // chunk_size))
     chunks = []
     t0 = time.perf_counter()
     for c in range(-(-n_runs // chunk_size)):

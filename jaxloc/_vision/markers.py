@@ -109,12 +109,12 @@ class MarkerColor:
             raise ValueError(f"`{where}` is invalid: {e}") from None
 
 
-#: Ranges matching [`jaxloc.render_cycle`][]'s default marker colours.
 DEFAULT_MARKER_COLORS = {
     "red": MarkerColor(170, 10),
     "green": MarkerColor(45, 75),
     "blue": MarkerColor(105, 130),
 }
+"""Ranges matching [`jaxloc.render_cycle`][]'s default marker colours."""
 
 
 @dataclasses.dataclass(frozen=True)

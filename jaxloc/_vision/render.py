@@ -47,10 +47,10 @@ from .._cycle.sightings import in_body, marker_in_world, mutual_points
 from .._model.measurements import rotations
 
 
-#: Default marker colours (BGR) of C1, C2, C3: saturated red, green, blue. Their hues
-#: (0, 60, 120 on OpenCV's 0-179 scale) are far from the distractors' (yellow 30,
-#: cyan 90, magenta 150).
 DEFAULT_MARKER_BGR = ((30, 30, 220), (40, 190, 40), (220, 60, 30))
+"""Default marker colours (BGR) of C1, C2, C3: saturated red, green, blue. Their hues
+(0, 60, 120 on OpenCV's 0-179 scale) are far from the distractors' (yellow 30,
+cyan 90, magenta 150)."""
 _DISTRACTOR_BGR = ((30, 210, 230), (220, 200, 40), (200, 40, 200))
 _SUPERSAMPLE = 8
 _SILHOUETTE_POINTS = 96

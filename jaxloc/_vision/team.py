@@ -7,7 +7,7 @@ strategy: sequential              # or concurrent
 robots:
   C:  {camera: overhead.yaml}     # the climbing robot's perspective camera (pinhole file)
   # or a camera of a Kalibr camchain, by name: {camera: {file: camchain.yaml, name: cam1}}
-  C1: {camera: ptz.yaml, marker: red, pan: 0.0, tilt: 0.0}   # PTZ calibrated at one zoom
+  C1: {camera: ptz.yaml, marker: red, pan: 0.0, tilt: 0.0, zoom: 0.4}   # the PTZ
   C2: {camera: omni2.yaml, marker: green, elevation_deg: [-12, 32]}
   C3: {camera: omni3.yaml, marker: {hue: [105, 130], sat_min: 90, val_min: 40}}
 odometry: [0.81, 0.77, 0.92]      # measured distance of each move (m), strategy order
@@ -28,12 +28,18 @@ centroid is moved to the projection of the sphere's centre
 
 Camera files are read by [`jaxloc.load_camera`][] (jaxloc's camera dict as JSON/YAML,
 OpenCV YAML, Kalibr camchains). A robot's `camera` is a file name, or `{file: <camchain>,
-name: <camera>}` for one camera of a Kalibr camchain (`name` defaults to `cam0`). `C1`'s
-file is a perspective camera calibrated at the zoom used (or a `ptz` camera dict, whose
-pan and tilt are then the head's); `pan`/`tilt` (rad) are its head's angles (jaxloc's PTZ
-convention). Marker colours are names (`red`, `green`, `blue`) or HSV ranges
-([`jaxloc.MarkerColor`][]). Unknown keys, anywhere, are errors naming the key and the
-file.
+name: <camera>}` for one camera of a Kalibr camchain (`name` defaults to `cam0`).
+
+`C1`'s camera file is either a perspective (pinhole) camera calibrated at the zoom used,
+or a `ptz` camera: the two-end model, or the zoom table `jaxloc calibrate --model ptz`
+writes. `pan`/`tilt` (rad) are the head's angles (jaxloc's PTZ convention); for a ptz
+file they replace the file's own when given, and `zoom` (in `[0, 1]`, default the
+file's) picks the zoom the images were taken at, which must lie within a zoom table's
+calibrated steps (the table does not extrapolate). The team's C1 is then the PTZ's
+pinhole at that zoom, mounted through the head's pan and tilt: the same projection as
+the PTZ camera's. `zoom` with a pinhole file is an error. Marker colours are names
+(`red`, `green`, `blue`) or HSV ranges ([`jaxloc.MarkerColor`][]). Unknown keys,
+anywhere, are errors naming the key and the file.
 """
 
 import dataclasses
@@ -75,7 +81,7 @@ _DETECTION_KEYS = {
 #: The keys of each robot's entry in a team file.
 ROBOT_KEYS = {
     "C": ("camera",),
-    "C1": ("camera", "marker", "pan", "tilt"),
+    "C1": ("camera", "marker", "pan", "tilt", "zoom"),
     "C2": ("camera", "marker", "elevation_deg"),
     "C3": ("camera", "marker", "elevation_deg"),
 }
@@ -87,7 +93,9 @@ class Team:
     docstring for the file format; [`jaxloc.load_team`][] reads it).
 
     **Fields:** `strategy`; `cameras` `{robot: camera}` (`C` pinhole, `C1` pinhole at the
-    PTZ's zoom, `C2`/`C3` omni); `pan`, `tilt` (rad, C1's head); `markers`
+    PTZ's zoom, `C2`/`C3` omni; a [`jaxloc.PTZCamera`][] given for `C1` is replaced by
+    its pinhole at its zoom, its pan and tilt becoming the team's unless these are given
+    too, and then they must agree); `pan`, `tilt` (rad, C1's head); `markers`
     `{C1|C2|C3: MarkerColor}`; `odometry` `(moves,)` m; `odometry_sigma_rel`;
     `pixel_sigma` (px per axis); `steps`: per step `{robot: image path}` (or `None` when
     images are passed in memory); `detection`: detector options; `source`: the team file.
@@ -130,9 +138,7 @@ class Team:
                 f"{type(self.cameras['C']).__name__}."
             )
         if isinstance(self.cameras["C1"], PTZCamera):
-            ptz = self.cameras["C1"]
-            self.pan, self.tilt = float(ptz.pan), float(ptz.tilt)
-            self.cameras["C1"] = ptz.pinhole()
+            self.cameras["C1"] = self._ptz_pinhole(self.cameras["C1"])
         if not isinstance(self.cameras["C1"], PinholeCamera):
             raise ValueError(
                 f"`{w}: robots.C1.camera` must be a perspective camera (the PTZ at its zoom); "
@@ -144,6 +150,30 @@ class Team:
                     f"`{w}: robots.{r}.camera` must be an omnidirectional camera (model omni, "
                     f"with xi); got {type(self.cameras[r]).__name__}."
                 )
+
+    def _ptz_pinhole(self, ptz: PTZCamera) -> PinholeCamera:
+        """C1's pinhole at the PTZ's zoom; the PTZ's pan and tilt become the team's."""
+        w = self.source
+        head = (float(ptz.pan), float(ptz.tilt))
+        given = (float(self.pan), float(self.tilt))
+        if head != (0.0, 0.0) and given != (0.0, 0.0) and head != given:
+            raise ValueError(
+                f"`{w}: robots.C1`: the head's pan and tilt are given twice and differ: "
+                f"{short(list(given))} for the team, {short(list(head))} in its PTZ camera; "
+                "give them in one place."
+            )
+        if head != (0.0, 0.0):
+            self.pan, self.tilt = head
+        table = ptz.zoom_table
+        if table is not None:
+            z, lo, hi = float(ptz.zoom), float(table.zooms[0]), float(table.zooms[-1])
+            if not lo <= z <= hi:
+                raise ValueError(
+                    f"`{w}: robots.C1.zoom` must lie within the calibrated zoom steps "
+                    f"[{lo!r}, {hi!r}] of C1's zoom table (the table does not "
+                    f"extrapolate); got {z!r}."
+                )
+        return ptz.pinhole()
 
     def _check_numbers(self):
         w = self.source
@@ -216,7 +246,7 @@ def team_from_dict(d: Any, source: str) -> Team:
     entries = {r: _robot_entry(robots.get(r), r, w) for r in ROBOTS}
     cameras = {r: _robot_camera(entries[r], r, base, w) for r in ROBOTS}
     markers = {r: _robot_marker(entries[r], r, w) for r in GROUND}
-    pan, tilt = (_head_angle(entries["C1"], name, w) for name in ("pan", "tilt"))
+    cameras["C1"], (pan, tilt) = _c1_head(cameras["C1"], entries["C1"], w)
     odo = d.get("odometry")
     if not isinstance(odo, list) or not all(_is_number(x) for x in odo):
         raise ValueError(f"`{w}: odometry` must be a list of distances (m); got {short(odo)}.")
@@ -298,6 +328,34 @@ def _head_angle(e: dict, name: str, w: str) -> float:
     if not _is_number(v) or not math.isfinite(v):
         raise ValueError(f"`{w}: robots.C1.{name}` must be a number (rad); got {short(v)}.")
     return float(v)
+
+
+def _c1_head(
+    cam: AbstractCamera, e: dict, w: str
+) -> tuple[AbstractCamera, tuple[float, float]]:
+    """C1's camera and the team's `(pan, tilt)` from its team-file entry: for a PTZ
+    camera file, the entry's `pan`, `tilt` and `zoom` (when given) set on the camera (the
+    team takes its head angles from it); for a pinhole, the entry's angles."""
+    angles = {k: _head_angle(e, k, w) for k in ("pan", "tilt") if k in e}
+    if not isinstance(cam, PTZCamera):
+        if "zoom" in e:
+            raise ValueError(
+                f"`{w}: robots.C1.zoom` applies to a ptz camera file (e.g. a zoom table from "
+                f"`jaxloc calibrate --model ptz`); C1's camera is a {type(cam).__name__}, "
+                "calibrated at one zoom."
+            )
+        return cam, (angles.get("pan", 0.0), angles.get("tilt", 0.0))
+    if "zoom" in e:
+        z = e["zoom"]
+        if not _is_number(z) or not 0.0 <= z <= 1.0:
+            raise ValueError(
+                f"`{w}: robots.C1.zoom` must be a number in [0, 1] (wide to tele); got "
+                f"{short(z)}."
+            )
+        angles["zoom"] = float(z)
+    for k, v in angles.items():
+        cam = eqx.tree_at(lambda c: getattr(c, k), cam, jnp.asarray(v, dtype=cam.pan.dtype))
+    return cam, (0.0, 0.0)
 
 
 def _steps(steps: Any, base: str, w: str) -> list:

@@ -1,0 +1,29 @@
+"""Studies on a Ray cluster (`jaxloc._study.cluster`, issue 22): every chunk one Ray task,
+a task whose worker dies is retried, and the study is the local one, bit for bit.
+
+Ray is a test dependency (the `tests` extra installs `jaxloc[cluster]`): this test runs in
+CI and is never skipped. The study runs in a process of its own (`cluster_study.py`), so
+that Ray's driver (its threads and signal handlers) stays out of the pytest process.
+"""
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+@pytest.mark.timeout(900)
+def test_a_study_on_two_ray_workers_survives_a_lost_task(tmp_path):
+    run = subprocess.run(
+        [sys.executable, os.path.join(HERE, "cluster_study.py"), str(tmp_path)],
+        capture_output=True, text=True, timeout=840,
+        env={**os.environ, "RAY_ENABLE_AUTO_CONNECT": "0"},
+    )  # fmt: skip
+    assert run.returncode == 0, f"{run.stdout}\n{run.stderr}"
+    assert "all checks passed" in run.stdout
+    assert os.path.exists(tmp_path / "crashed_1")  # the worker process did die
+    print(run.stdout)
