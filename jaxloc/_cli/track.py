@@ -182,11 +182,14 @@ def targets(summary: dict) -> dict:
 
 
 def plot_track(study: dict, summary: dict, path: str) -> None:
-    """Top view of the first run (truth, chaining, smoother with 2-sigma ellipses) and the
-    RMSE of every robot against cycle beside the bounds; written to `path`."""
-    import matplotlib
+    """[`track_figure`][] written to `path` (PNG or any format matplotlib writes)."""
+    track_figure(study, summary).savefig(path, dpi=110)
 
-    matplotlib.use("Agg")
+
+def track_figure(study: dict, summary: dict):
+    """Top view of the first run (truth, chaining, smoother with 2-sigma ellipses) and the
+    RMSE of every robot against cycle beside the bounds, as a matplotlib `Figure` (no
+    pyplot state: a notebook shows it by displaying the returned figure)."""
     from matplotlib.figure import Figure
     from matplotlib.patches import Ellipse
 
@@ -241,7 +244,7 @@ def plot_track(study: dict, summary: dict, path: str) -> None:
     ax2.set_title("Error against cycle (chaining x, smoother o, one-step dotted)")
     ax2.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    return fig
 
 
 def _cmd_track(args) -> int:

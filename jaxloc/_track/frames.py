@@ -15,6 +15,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._core.numerics import safe_norm, safe_normalize
 from .._core.poses import compose, inverse
 from .._cycle.layout import placement_ids
 
@@ -41,6 +42,17 @@ def position_covariance(T: Float[Array, "7"], cov: Float[Array, "6 6"]) -> Float
 def rotation_covariance(cov: Float[Array, "6 6"]) -> Float[Array, "3 3"]:
     """The rotation block `cov_omega` (rad^2) of a right-perturbation covariance."""
     return cov[3:, 3:]
+
+
+def plane_normal(points: Float[Array, "3 3"], up: Float[Array, "3"]) -> Float[Array, "3"]:
+    """Unit normal of the plane of three points, on the side of `up`."""
+    n = safe_normalize(jnp.cross(points[1] - points[0], points[2] - points[0]))
+    return jnp.where(jnp.sum(n * up) >= 0, n, -n)
+
+
+def perimeter(p: Float[Array, "3 3"]) -> Float[Array, ""]:
+    """Perimeter of the triangle of three points (m)."""
+    return jnp.sum(safe_norm(p[jnp.array([1, 2, 2])] - p[jnp.array([0, 0, 1])]))
 
 
 def body_of_overhead(T_over: Float[Array, "7"], mount: Float[Array, "7"]) -> Float[Array, "7"]:

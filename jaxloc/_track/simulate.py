@@ -15,12 +15,13 @@ import jax.random as jr
 import jaxlie
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
-from .._core.numerics import safe_norm, safe_normalize
+from .._core.numerics import safe_norm
 from .._core.poses import compose, inverse, rplus
 from .._cycle.observations import CycleObservations
 from .._cycle.sightings import in_body, marker_in_world
 from .._sim.simulate import CycleTruth, overhead_frames, simulate_cycle, xy_sides
 from .._sim.world import body_frame_on_surface
+from .frames import plane_normal
 from .scenario import TrackScenario
 
 
@@ -102,15 +103,9 @@ def markers_env(track: TrackScenario, xy: Float[Array, "3 2"]) -> Float[Array, "
 
 def plane_height(markers: Float[Array, "3 3"], point: Float[Array, "3"]) -> Float[Array, ""]:
     """Distance of `point` from the plane of three markers, positive on the side of the
-    plane's upward normal (the normal's z > 0 in `E`; the normal of [`formation_normal`][])."""
-    n = formation_normal(markers, jnp.asarray([0.0, 0.0, 1.0], markers.dtype))
+    plane's upward normal (the normal's z > 0 in `E`; the normal of [`plane_normal`][])."""
+    n = plane_normal(markers, jnp.asarray([0.0, 0.0, 1.0], markers.dtype))
     return jnp.sum(n * (point - markers[0]))
-
-
-def formation_normal(points: Float[Array, "3 3"], up: Float[Array, "3"]) -> Float[Array, "3"]:
-    """Unit normal of the plane of three points, on the side of `up`."""
-    n = safe_normalize(jnp.cross(points[1] - points[0], points[2] - points[0]))
-    return jnp.where(jnp.sum(n * up) >= 0, n, -n)
 
 
 def _climber_step(track: TrackScenario, key, c_xy, heading0, xy_next, target, dtype):

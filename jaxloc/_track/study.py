@@ -10,8 +10,6 @@ interruption. Its manifest's scenario is the tracking scenario's file form with 
 number of cycles and the smoother's window.
 """
 
-import os
-import time
 from collections import Counter
 from collections.abc import Callable
 
@@ -20,19 +18,11 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jax.sharding import Mesh, PartitionSpec
 
 from .._core.results import status_names
 from .._cycle.layout import CAMERAS
-from .._study.chunks import (
-    check_seed,
-    chunk_path,
-    open_study,
-    read_chunk,
-    study_manifest,
-    write_chunk,
-)
-from .._study.engine import LARGE_PROGRAM_COMPILER_OPTIONS, MICRO_BATCH, ProgressBar
+from .._study.chunks import check_seed, open_study, study_manifest
+from .._study.engine import LARGE_PROGRAM_COMPILER_OPTIONS, map_trials, stream_chunks
 from .._study.stats import describe
 from .scenario import track_scenario_to_dict, TrackScenario
 from .tracker import DEFAULT_WINDOW
@@ -45,19 +35,10 @@ TRACK_FIELDS = tuple(TrackErrors.__dataclass_fields__)
 
 @eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
 def _track_chunk(track: TrackScenario, seed, start, chunk_size: int, cycles: int, window: int):
-    mesh = Mesh(np.array(jax.devices()), ("runs",))
-    indices = start + jnp.arange(chunk_size)
-
-    def local(indices):
-        def one(i):
-            return run_track_trial(track, jr.fold_in(jr.key(seed), i), cycles, window)
-
-        return jax.lax.map(one, indices, batch_size=min(MICRO_BATCH, indices.shape[0]))
-
-    spec = PartitionSpec("runs")
-    return jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)(
-        indices
-    )
+    return map_trials(
+        lambda i: run_track_trial(track, jr.fold_in(jr.key(seed), i), cycles, window),
+        start, chunk_size,
+    )  # fmt: skip
 
 
 def _chunk_inputs(track, seed, start, chunk_size, cycles, window):
@@ -150,29 +131,22 @@ def run_track_study(
     if out_dir is not None:
         manifest = track_manifest(track, seed, chunk_size, cycles, window)
         open_study(out_dir, manifest)
-    expected = track_chunk_fields(track, chunk_size, cycles)
-    bar = ProgressBar(progress, n_runs, -(-n_runs // chunk_size))
-    chunks = []
-    t0 = time.perf_counter()
-    for c in range(-(-n_runs // chunk_size)):
-        size = min(chunk_size, n_runs - c * chunk_size)
-        path = None if out_dir is None else chunk_path(out_dir, c)
-        arrays = None
-        if path is not None and os.path.exists(path):
-            arrays = read_chunk(path, expected, c * chunk_size, manifest)
-        if arrays is None:
+
+    def runner(todo, on_done):
+        for c in todo:
             arrays = run_track_chunk(track, seed, c, chunk_size, cycles, window)
-            if path is not None:
-                write_chunk(path, arrays, manifest)
-        arrays = {k: v[:size] for k, v in arrays.items()}
+            on_done()
+            yield arrays
+
+    chunks = []
+    stream = stream_chunks(
+        n_runs, chunk_size, runner, out_dir, manifest,
+        lambda: track_chunk_fields(track, chunk_size, cycles), progress,
+    )  # fmt: skip
+    for c, arrays in enumerate(stream):
         chunks.append(arrays)
         if on_chunk is not None:
             on_chunk(c, arrays)
-        if bar is not None:
-            done = sum(len(ch["index"]) for ch in chunks)
-            bar.advance(size, done / max(time.perf_counter() - t0, 1e-9))
-    if bar is not None:
-        bar.close()
     return {k: np.concatenate([ch[k] for ch in chunks]) for k in chunks[0]}
 
 

@@ -34,8 +34,10 @@ from .smoother import bound_update, smoother_start, WindowLayout
 from .tracker import DEFAULT_WINDOW, track_cycles, TrackEstimates
 
 
-#: The methods of a tracking study, in the order of every per-method array.
 TRACK_METHODS = ("chain", "smoother", "one_step")
+"""The methods of a tracking study, in the order of every per-method array: "chain" (each
+cycle alone, chained into the first cycle's frame), "smoother" (the fixed-lag smoother),
+"one_step" (the climbing robot from each cycle's first formation and its prior)."""
 
 
 class TrackErrors(eqx.Module):
