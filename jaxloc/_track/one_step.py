@@ -398,8 +398,9 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     # unconverged, rejected by the chi-square gate (median error 0.8 m; measured on 512);
     # iterating to convergence, with the predicted decrease as the stopping test, leaves
     # 0.6 % inconsistent (chi-square 28 against a limit of 27.7) in 5 model evaluations
-    # (median; p90 17, largest 30 of 512: hence the cap of 40). The gates' `chi2_min` is the misfit at the final
-    # Gauss--Newton step's linearized optimum (as `jaxloc._model.gates.check`).
+    # (median; p90 17, largest 30 of 512: hence the cap of 40). The gates' `chi2_min` is
+    # the misfit at the final Gauss--Newton step's linearized optimum (as
+    # `jaxloc._model.gates.check`).
     camera = rig.overhead
     out = levenberg_marquardt(
         lambda x: _model(x, prior, pb, camera), _retract, lambda x: jnp.max(jnp.abs(x[1])),
