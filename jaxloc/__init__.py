@@ -170,6 +170,38 @@ from ._study.trial import (
     run_trial as run_trial,
     TrialErrors as TrialErrors,
 )
+from ._track.chain import chain_estimates as chain_estimates
+from ._track.one_step import (
+    localize_one_step as localize_one_step,
+    one_step_bound as one_step_bound,
+    OneStepEstimate as OneStepEstimate,
+    OneStepPrior as OneStepPrior,
+    Snapshot as Snapshot,
+)
+from ._track.scenario import (
+    load_track_scenario as load_track_scenario,
+    save_track_scenario as save_track_scenario,
+    track_scenario_from_dict as track_scenario_from_dict,
+    track_scenario_to_dict as track_scenario_to_dict,
+    TrackScenario as TrackScenario,
+)
+from ._track.simulate import (
+    simulate_track as simulate_track,
+    TrackObservations as TrackObservations,
+    TrackTruth as TrackTruth,
+)
+from ._track.smoother import SmootherEstimate as SmootherEstimate
+from ._track.study import (
+    run_track_chunk as run_track_chunk,
+    run_track_study as run_track_study,
+    summarize_track as summarize_track,
+)
+from ._track.tracker import track_cycles as track_cycles, TrackEstimates as TrackEstimates
+from ._track.trial import (
+    run_track_trial as run_track_trial,
+    TRACK_METHODS as TRACK_METHODS,
+    TrackErrors as TrackErrors,
+)
 from ._vision.calibrate import (
     calibrate_omni as calibrate_omni,
     calibrate_omni_corners as calibrate_omni_corners,

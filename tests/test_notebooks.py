@@ -11,9 +11,11 @@ NOTEBOOKS = os.path.join(os.path.dirname(__file__), "..", "notebooks")
 # Slow (XLA compilation of four small studies, ~2 min): run by CI's second step.
 @pytest.mark.slow
 @pytest.mark.timeout(1200)
-@pytest.mark.parametrize("name", ["noise_study.ipynb"])
+@pytest.mark.parametrize("name", ["noise_study.ipynb", "tracking.ipynb"])
 def test_notebook_runs_at_small_size(name, monkeypatch):
     monkeypatch.setenv("JAXLOC_NOTEBOOK_TRIALS", "32")
+    monkeypatch.setenv("JAXLOC_NOTEBOOK_RUNS", "4")
+    monkeypatch.setenv("JAXLOC_NOTEBOOK_CYCLES", "3")
     monkeypatch.setenv("MPLBACKEND", "Agg")
     with open(os.path.join(NOTEBOOKS, name)) as f:
         nb = nbformat.read(f, as_version=4)

@@ -1,5 +1,5 @@
 """The `jaxloc` command line: `table1`, `simulate`, `cameras`, `calibrate`, `localize`,
-`design`. Exit codes: see `jaxloc._cli.common` (and `jaxloc --help`)."""
+`design`, `track`. Exit codes: see `jaxloc._cli.common` (and `jaxloc --help`)."""
 
 import argparse
 import contextlib
@@ -11,7 +11,7 @@ import time
 import numpy as np
 
 from .._study.cluster import ClusterError
-from . import design as _cli_design, images as _cli_images
+from . import design as _cli_design, images as _cli_images, track as _cli_track
 from .common import (
     chatter,
     check_outputs,
@@ -392,6 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_cameras)
     _cli_images.register(sub, parents=[quiet])
     _cli_design.register(sub, parents=[quiet])
+    _cli_track.register(sub, parents=[quiet])
     return parser
 
 

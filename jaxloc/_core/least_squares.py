@@ -60,9 +60,14 @@ class NormalEquations(NamedTuple):
     g: Float[Array, " n"]
 
 
-def normal_equations(r: Float[Array, " m"], J: Float[Array, "m n"]) -> NormalEquations:
-    """The [`NormalEquations`][] of residuals `r` and their dense Jacobian `J`."""
-    return NormalEquations(jnp.sum(r * r), gram(J), jnp.sum(J * r[:, None], axis=0))
+def normal_equations(
+    r: Float[Array, " m"], J: Float[Array, "m n"], gram_fn: Callable[[Array], Array] = gram
+) -> NormalEquations:
+    """The [`NormalEquations`][] of residuals `r` and their dense Jacobian `J`. `gram_fn`
+    forms `J^T J`: [`gram`][] (element-wise, best for a few dozen unknowns or fewer) or
+    `jaxloc._core.linalg.gram_dot` (one `dot`, for larger problems such as the tracking
+    smoother's window)."""
+    return NormalEquations(jnp.sum(r * r), gram_fn(J), jnp.sum(J * r[:, None], axis=0))
 
 
 class LMSettings(NamedTuple):

@@ -245,6 +245,7 @@ class Formation(eqx.Module):
             strategy=s.strategy, move_candidates=s.move_candidates,
             require_overhead=s.require_overhead, require_ptz=s.require_ptz,
             require_omni=s.require_omni, initial_xy=s.initial_xy, moves=s.moves, rig=rig,
+            formation_sides=s.formation_sides,
         )  # fmt: skip
 
 

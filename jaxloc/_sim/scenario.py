@@ -88,6 +88,13 @@ class Scenario(eqx.Module):
       infeasible.
     - `min_separation`: smallest allowed distance between two ground robots after a move
       (m), a collision guard (the Pioneer robots are ~0.4 m across). Our addition.
+    - `formation_sides`: `None` (default: each move takes the first feasible candidate, the
+      paper's random moves) or three side lengths (m, in the `E` x-y plane, shape `(3,)`)
+      that the team keeps: each move takes the feasible candidate whose triangle's sides,
+      sorted, are closest to them, sorted (least squares: the triangle's size and shape
+      are kept, its orientation and which robot stands where are free, so that it can
+      turn to stay in view). Our addition: over many cycles the random moves otherwise let
+      the triangle drift into near-collinear shapes (`jaxloc._track`).
     - `odometry_sigma_rel`: relative standard deviation of a move's measured distance.
     - `strategy` (static): `"sequential"` or `"concurrent"` (DESIGN §3).
     - `move_candidates` (static): candidates drawn per move for branch-free resampling.
@@ -108,6 +115,7 @@ class Scenario(eqx.Module):
     move_mean: Float[Array, ""]
     move_std: Float[Array, ""]
     moves: Float[Array, "moves 2"] | None
+    formation_sides: Float[Array, "3"] | None
     min_separation: Float[Array, ""]
     odometry_sigma_rel: Float[Array, ""]
     strategy: str = eqx.field(static=True)
@@ -143,6 +151,7 @@ class Scenario(eqx.Module):
         initial_xy: Float[ArrayLike, "3 2"] | None = None,
         moves: Float[ArrayLike, "moves 2"] | None = None,
         rig: Rig | None = None,
+        formation_sides: Float[ArrayLike, "3"] | None = None,
     ):
         """**Arguments:** the fields above; `None` surfaces and cameras take the paper's
         defaults: `SaddleSurface(-8, 8)`, `SinusoidSurface(3.5, 0.25, 10)`,
@@ -183,6 +192,7 @@ class Scenario(eqx.Module):
         self.require_omni = require_omni
         self.initial_xy = None if initial_xy is None else _as_float(initial_xy)
         self.moves = None if moves is None else _as_float(moves)
+        self.formation_sides = None if formation_sides is None else _as_float(formation_sides)
 
     def __check_init__(self):
         def bad(name, msg):
@@ -254,6 +264,13 @@ class Scenario(eqx.Module):
                     bad("moves", f"must be finite; got {v.tolist()}.")
                 if not np.all(v[:, 0] > 0):
                     bad("moves", f"lengths (column 0) must be positive; got {v.tolist()}.")
+        if self.formation_sides is not None:
+            if self.formation_sides.shape != (3,):
+                bad("formation_sides", f"must have shape (3,) (three side lengths); got "
+                    f"shape {self.formation_sides.shape}.")  # fmt: skip
+            v = _concrete(self.formation_sides)
+            if v is not None and not np.all(np.isfinite(v) & (v > 0)):
+                bad("formation_sides", f"must be finite positive lengths (m); got {v.tolist()}.")
         check_surface("ground", self.ground)
         check_surface("ceiling", self.ceiling)
         check_ceiling_above_ground(self)

@@ -28,6 +28,7 @@ move_std: 0.2
 # moves: [[0.8, 0.0], [0.8, 0.0], [0.8, 0.0]]   # optional fixed moves: [length, direction]
 move_candidates: 32
 min_separation: 0.4
+# formation_sides: [1.5, 1.5, 2.0]   # optional: side lengths the moves keep (m)
 pixel_sigma: 2.0                # px; or one per camera [C, C1, C2, C3]
 noise_model: paper              # or gaussian
 odometry_sigma_rel: 0.01
@@ -41,7 +42,9 @@ particular without `initial_xy` the triangle is the isosceles `base`/`side` one,
 without `moves` the moves are random. `initial_xy` and `moves` may also be written as
 `null`. An empty file is an error (write `{}` for the paper's scenario). Unknown keys
 are errors naming the key (and, from a file, the file); the ceiling must be above the
-ground at the initial robots and the overhead robot.
+ground at the initial robots and the overhead robot. An optional `tracking` mapping (the
+multi-cycle section: the climbing robot's motion and odometry between cycles) is read and
+validated by `jaxloc track` (`jaxloc.load_track_scenario`); one cycle does not use it.
 Surface types: `saddle` (`radius_x`, `radius_y`, `height`), `flat` (`height`),
 `sinusoid` (`height`, `amplitude`, `period`, `phase`). Camera presets: `paper_overhead`,
 `paper_ptz`, `paper_omni`; a preset's overrides use camera-dict keys (`pan`, `xi`, ...)
@@ -98,14 +101,21 @@ _FLOAT_KEYS = {
 #: file (and a study's manifest) of a scenario without them is what it was before they
 #: existed.
 _OPTIONAL_KEYS = {"initial_xy": 3, "moves": None}  # key -> required row count (None: any)
+#: Optional lists of numbers, written only when set (same reason): key -> length.
+_OPTIONAL_VECTORS = {"formation_sides": 3}
 _STR_KEYS = {"strategy": STRATEGIES, "noise_model": NOISE_MODELS}
+#: The multi-cycle section (`jaxloc._track.scenario`): a mapping that one cycle's scenario
+#: does not use; `jaxloc track` reads and validates it (`jaxloc.load_track_scenario`).
+TRACKING_KEY = "tracking"
 _BOOL_KEYS = ("require_overhead", "require_ptz", "require_omni")
 _TOP_KEYS = (
     ("ground", "ceiling", "cameras", "move_candidates")
     + tuple(_FLOAT_KEYS)
     + tuple(_OPTIONAL_KEYS)
+    + tuple(_OPTIONAL_VECTORS)
     + tuple(_STR_KEYS)
     + _BOOL_KEYS
+    + (TRACKING_KEY,)
 )
 
 
@@ -242,6 +252,8 @@ def scenario_to_dict(scenario: Scenario) -> dict[str, Any]:
             d["cameras"] = {s: camera_to_dict(getattr(scenario.rig, s)) for s in CAMERA_SLOTS}
         if k == "move_std" and scenario.moves is not None:
             d["moves"] = _to_builtin(scenario.moves)
+        if k == "min_separation" and scenario.formation_sides is not None:
+            d["formation_sides"] = _to_builtin(scenario.formation_sides)
     d["move_candidates"] = int(scenario.move_candidates)
     d["noise_model"] = scenario.rig.noise_model
     for k in _BOOL_KEYS:
@@ -263,6 +275,9 @@ def _scenario_kwargs(d: dict) -> dict[str, Any]:
     for k, rows in _OPTIONAL_KEYS.items():
         if k in d:
             kwargs[k] = _parse_rows(k, d[k], rows)
+    for k, n in _OPTIONAL_VECTORS.items():
+        if k in d and d[k] is not None:
+            kwargs[k] = _parse_float(k, d[k], (n,))
     for k, allowed in _STR_KEYS.items():
         if k in d:
             if not isinstance(d[k], str) or d[k] not in allowed:
@@ -300,6 +315,10 @@ def scenario_from_dict(d: Any) -> Scenario:
     an unknown strategy, noise model, surface type, camera model or preset.
     """
     _check_keys("", d, set(_TOP_KEYS))
+    if TRACKING_KEY in d and not isinstance(d[TRACKING_KEY], dict | None):
+        raise ValueError(
+            f"Scenario field `{TRACKING_KEY}` must be a mapping; got {short(d[TRACKING_KEY])}."
+        )
     kwargs = _scenario_kwargs(d)
     try:
         scenario = Scenario(**kwargs)

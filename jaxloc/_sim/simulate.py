@@ -154,6 +154,12 @@ def _formations_ok(scenario: Scenario, xy, R_over, p_over):
     return ok, over, mutual
 
 
+def xy_sides(xy: Float[Array, "*s 3 2"]) -> Float[Array, "*s 3"]:
+    """Side lengths C1–C2, C1–C3, C2–C3 (m) of formations `xy` in the `E` x-y plane."""
+    d = xy[..., jnp.array([1, 2, 2]), :] - xy[..., jnp.array([0, 0, 1]), :]
+    return jnp.sqrt(jnp.sum(d * d, axis=-1))
+
+
 def _pixel_noise(rig: Rig, sigma, key, shape, dtype):
     """Pixel noise of shape `shape + (2,)` with scale `sigma` (px, broadcasting against
     `shape`), under the rig's noise model."""
@@ -215,7 +221,15 @@ def _draw_moves(scenario: Scenario, key, xy0, R_over, p_over, dtype):
         mask, over, mutual = _formations_ok(
             scenario, jnp.concatenate([xy[None], cands]), R_over, p_over
         )
-        best = 0 if fixed else jnp.argmax(mask[1:])
+        if fixed:
+            best = 0
+        elif scenario.formation_sides is None:
+            best = jnp.argmax(mask[1:])
+        else:  # formation keeping: the feasible candidate nearest the formation's sides
+            sides = jnp.sort(xy_sides(cands), axis=-1)
+            keep = jnp.sort(scenario.formation_sides.astype(dtype))[None]
+            change = jnp.sum((sides - keep) ** 2, -1)
+            best = jnp.argmin(jnp.where(mask[1:], change, jnp.inf))
         xy = cands[best]
         feasible = feasible & mask[1 + best] & (mask[0] | ~first)
         # Sightings of the current and of the chosen formation, reused for the pixels.
@@ -331,7 +345,8 @@ def simulate_cycle(
        and C3), each is checked for the required sightings of the formation after the
        step (`scenario.require_*`: the overhead camera sees all three robots; C1's PTZ
        sees C2 and C3; each omni camera sees the two others within its elevation band)
-       and for `min_separation`, and the first feasible candidate is taken. If none is
+       and for `min_separation`, and the first feasible candidate is taken (with
+       `formation_sides`, the feasible one whose triangle's sides are closest to them). If none is
        feasible (or the initial formation is not), the first candidate is kept and the
        returned flag is `False`. **Fixed moves** (`scenario.moves` given): move `m` has
        exactly length `moves[m, 0]` and direction `moves[m, 1]` (no clipping, no

@@ -17,6 +17,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -24,6 +25,7 @@ import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
+from jaxtyping import Array
 
 from .._sim.scenario import Scenario
 from .._sim.scenario_file import scenario_to_dict
@@ -85,21 +87,28 @@ LARGE_PROGRAM_COMPILER_OPTIONS = {
 }
 
 
-@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
-def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
+def map_trials(trial: Callable[[Array], Any], start, chunk_size: int) -> Any:
+    """`trial(i)` for every `i` in `start + [0, chunk_size)` (`chunk_size` a multiple of
+    the device count), stacked: the trials sharded over every local device, each device
+    walking its share in `lax.map` steps of `MICRO_BATCH` trials. For use inside a jitted
+    chunk program (this module's, `jaxloc._track.study`'s)."""
     mesh = _mesh()
     indices = start + jnp.arange(chunk_size)
 
     def local(indices):
-        def one(i):
-            return run_trial(scenario, jr.fold_in(jr.key(seed), i), methods)
-
-        return jax.lax.map(one, indices, batch_size=min(MICRO_BATCH, indices.shape[0]))
+        return jax.lax.map(trial, indices, batch_size=min(MICRO_BATCH, indices.shape[0]))
 
     spec = PartitionSpec("trials")
     # check_vma=False: the trial code is written per trial, unaware of the device axis.
     return jax.shard_map(local, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)(
         indices
+    )
+
+
+@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
+def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
+    return map_trials(
+        lambda i: run_trial(scenario, jr.fold_in(jr.key(seed), i), methods), start, chunk_size
     )
 
 
@@ -245,6 +254,53 @@ def local_runner(scenario: Scenario, seed: int, chunk_size: int, methods) -> Chu
     return run
 
 
+def stream_chunks(
+    n_trials: int,
+    chunk_size: int,
+    runner: ChunkRunner,
+    out_dir: str | None,
+    manifest: dict | None,
+    expected: Callable[[], dict[str, tuple[tuple[int, ...], np.dtype]]],
+    progress: bool,
+) -> Iterator[dict[str, np.ndarray]]:
+    """Yield a chunked study's chunks' arrays in order (the last one cut to `n_trials`):
+    read back from `out_dir` (a study opened with `manifest`) when a previous run wrote
+    them and they pass the checks of `jaxloc._study.chunks` against `expected()` (`name ->
+    (shape, dtype)`), else computed by `runner` and written there. Any study with chunk
+    files uses it ([`study_chunks`][], `jaxloc._track.study`)."""
+    n_chunks = -(-n_trials // chunk_size)
+    paths = [None if out_dir is None else chunk_path(out_dir, c) for c in range(n_chunks)]
+    todo = [c for c in range(n_chunks) if paths[c] is None or not os.path.exists(paths[c])]
+    to_compute = set(todo)
+    bar = ProgressBar(progress, n_trials, n_chunks)
+    on_done = bar.chunk_done if bar is not None else (lambda: None)
+    computed = runner(todo, on_done)
+    fields = None
+    done = 0
+    t0 = time.perf_counter()
+    for c in range(n_chunks):
+        size = min(chunk_size, n_trials - c * chunk_size)
+        if c in to_compute:
+            arrays = next(computed)
+        else:
+            fields = fields or expected()
+            arrays = read_chunk(paths[c], fields, c * chunk_size, manifest)
+            if arrays is not None:
+                on_done()
+            else:  # damaged: recomputed (whole, so a resumed, longer study gets the same trials)
+                arrays = next(iter(runner([c], on_done)))
+                write_chunk(paths[c], arrays, manifest)
+        if c in to_compute and paths[c] is not None:
+            write_chunk(paths[c], arrays, manifest)
+        arrays = {k: v[:size] for k, v in arrays.items()}
+        done += size
+        if bar is not None:
+            bar.advance(size, done / max(time.perf_counter() - t0, 1e-9))
+        yield arrays
+    if bar is not None:
+        bar.close()
+
+
 def study_chunks(
     scenario: Scenario,
     n_trials: int,
@@ -265,37 +321,10 @@ def study_chunks(
     if out_dir is not None:  # only a study on disk needs the scenario's file form
         manifest = study_manifest(scenario_to_dict(scenario), seed, chunk_size, methods)
         open_study(out_dir, manifest)
-    n_chunks = -(-n_trials // chunk_size)
-    paths = [None if out_dir is None else chunk_path(out_dir, c) for c in range(n_chunks)]
-    todo = [c for c in range(n_chunks) if paths[c] is None or not os.path.exists(paths[c])]
-    to_compute = set(todo)
-    bar = _progress(progress, n_trials, n_chunks)
-    on_done = bar.chunk_done if bar is not None else (lambda: None)
-    computed = runner(todo, on_done)
-    expected = None
-    done = 0
-    t0 = time.perf_counter()
-    for c in range(n_chunks):
-        size = min(chunk_size, n_trials - c * chunk_size)
-        if c in to_compute:
-            arrays = next(computed)
-        else:
-            expected = expected or chunk_fields(scenario, chunk_size, methods)
-            arrays = read_chunk(paths[c], expected, c * chunk_size, manifest)
-            if arrays is not None:
-                on_done()
-            else:  # damaged: recomputed (whole, so a resumed, longer study gets the same trials)
-                arrays = next(iter(runner([c], on_done)))
-                write_chunk(paths[c], arrays, manifest)
-        if c in to_compute and paths[c] is not None:
-            write_chunk(paths[c], arrays, manifest)
-        arrays = {k: v[:size] for k, v in arrays.items()}
-        done += size
-        if bar is not None:
-            bar.advance(size, done / max(time.perf_counter() - t0, 1e-9))
-        yield arrays
-    if bar is not None:
-        bar.close()
+    yield from stream_chunks(
+        n_trials, chunk_size, runner, out_dir, manifest,
+        lambda: chunk_fields(scenario, chunk_size, methods), progress,
+    )  # fmt: skip
 
 
 def run_study(
@@ -383,7 +412,7 @@ def summarize_chunks(chunks: Iterator[dict[str, np.ndarray]], methods) -> dict:
     return summary.result()
 
 
-class _progress:
+class ProgressBar:
     """A rich progress bar showing trials, trials/s and chunks finished (or nothing if
     disabled). Chunks may finish out of order (on a cluster): the bar counts trials as
     they reach the study in order, and chunks as they finish anywhere."""

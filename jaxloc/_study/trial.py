@@ -162,7 +162,9 @@ def estimate_all(
     return [estimates[m] for m in methods], bound
 
 
-def _nees(error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]) -> Float[Array, "4"]:
+def position_nees(
+    error: Float[Array, "4 3"], covariance: Float[Array, "4 3 3"]
+) -> Float[Array, "4"]:
     """`e^T P^-1 e` per camera; NaN where `P` is singular (e.g. the fixed reference)."""
 
     def one(e, P):
@@ -213,7 +215,7 @@ def run_trial(
     if refined_error is None:
         nees = jnp.full((4,), jnp.nan, dtype=truth.poses.T_world_overhead.wxyz_xyz.dtype)
     else:
-        nees = _nees(refined_error, refined_covariance.position)
+        nees = position_nees(refined_error, refined_covariance.position)
     # A key of its own: the draws change nothing else in the trial.
     k_pos, k_rot = jr.split(jr.fold_in(key, 0x0C7B))
     samples = _bound_samples(k_pos, bound.position), _bound_samples(k_rot, bound.rotation)
