@@ -183,8 +183,8 @@ def test_fill_missing_bearings_jit_vmap_and_dtype(dtype):
     present[0, 0, 2] = False  # C1 -> C3 at step 0: the same at step 1 (both still)
     present[1, 1, 2] = False  # C2 -> C3 at step 1: on the cone, C1 and C2 still at step 2
     present = jnp.asarray(present)
-    filled, determined = fill_missing_bearings(u, present, "sequential")
-    assert filled.dtype == dtype and bool(determined)
+    filled, free, unresolved = fill_missing_bearings(u, present, "sequential")
+    assert filled.dtype == dtype and not bool(free) and not bool(unresolved)
     tol = 1e-4 if dtype == jnp.float32 else 1e-10
     off = ~np.eye(3, dtype=bool)
     np.testing.assert_allclose(np.asarray(filled)[:, off], np.asarray(u)[:, off], atol=tol)
@@ -192,12 +192,15 @@ def test_fill_missing_bearings_jit_vmap_and_dtype(dtype):
     np.testing.assert_allclose(jitted(u, present, strategy="sequential")[0], filled, atol=tol)
     batch = jnp.stack([u, u])
     masks = jnp.stack([present, jnp.ones_like(present)])
-    out, _ = jax.vmap(lambda b, p: fill_missing_bearings(b, p, "sequential"))(batch, masks)
+    out = jax.vmap(lambda b, p: fill_missing_bearings(b, p, "sequential"))(batch, masks)[0]
     np.testing.assert_allclose(out[0], filled, atol=tol)
     # Two bearings missing from one triangle, neither recoverable: left NaN.
     two = present.at[3, 1, 0].set(False).at[3, 2, 0].set(False)
-    filled2, _ = fill_missing_bearings(u, two, "sequential")
-    assert np.all(np.isnan(np.asarray(filled2[3, 1, 0])))
+    filled2, free2, unresolved2 = fill_missing_bearings(u, two, "sequential")
+    assert np.all(np.isnan(np.asarray(filled2[3, 1, 0]))) and bool(unresolved2)
+    # C1 at step 3 (a placement of that step only) not seeing C2: its rotation is free.
+    _, free3, _ = fill_missing_bearings(u, present.at[3, 0, 1].set(False), "sequential")
+    assert bool(free3)
 
 
 def test_bound_of_the_measurements_present():
