@@ -115,7 +115,11 @@ from ._model.covariance import (
 )
 from ._refine.cycle import refine_cycle as refine_cycle
 from ._refine.pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
-from ._sim.defects import corrupt_observations as corrupt_observations, DEFECTS as DEFECTS
+from ._sim.defects import (
+    corrupt_observations as corrupt_observations,
+    DEFECTS as DEFECTS,
+    drop_sightings as drop_sightings,
+)
 from ._sim.scenario import astype as astype, Scenario as Scenario
 from ._sim.scenario_file import (
     load_scenario as load_scenario,

@@ -16,6 +16,7 @@ import jaxloc
 import numpy as np
 import pytest
 from jaxloc._cycle.rig import mount_pose
+from jaxloc._study.robustness import final_positions
 
 
 def test_paper_rig_is_the_scenarios():
@@ -97,3 +98,48 @@ def test_refinement_with_distorted_cameras_reaches_the_bound_of_the_same_rig(off
     efficiency = np.sqrt(bound[ok].mean() / sq[ok].mean())
     # 384 trials: the RMSE is known to ~4% (one standard deviation).
     assert 0.85 < efficiency < 1.15, efficiency
+
+
+@ft.partial(jax.jit, static_argnames="strategy")
+def _noiseless_with_offsets(rig, strategy, keys):
+    scenario = jaxloc.Scenario.paper(strategy, rig=rig, odometry_sigma_rel=1e-9)
+
+    def one(key):
+        truth, obs, visible = jaxloc.simulate_cycle(scenario, key)
+        closed = jaxloc.localize_cycle(obs, rig, throw=False)
+        refined = jaxloc.refine_cycle(obs, rig, closed, throw=False)
+        true_pos = final_positions(truth.poses)
+        errors = [
+            jnp.max(jnp.abs(final_positions(e.poses) - true_pos)) for e in (closed, refined)
+        ]
+        sq = jnp.sum((final_positions(closed.poses) - true_pos) ** 2, axis=-1)
+        var = jnp.trace(closed.covariance.position, axis1=-2, axis2=-1)
+        return visible, closed.result._value, refined.result._value, *errors, sq, var
+
+    return jax.vmap(one)(keys)
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_offsets_exact_on_noiseless_data(strategy):
+    """Issue 20.3: cameras 5-30 cm from their body origins and markers 10-25 cm above
+    them. The closed forms take every camera centre and marker at the body origin (the
+    paper's model; a few centimetres off here), flagged by their gates or carrying that
+    offset in their covariance; the refinement models the offsets exactly and recovers
+    the poses of noise-free data to 1e-8 m."""
+    rig = _distorted_rig(True)
+    rig = eqx.tree_at(lambda r: r.pixel_sigma, rig, jnp.zeros(4))
+    visible, closed, refined, e_closed, e_refined, sq, var = map(
+        np.asarray, _noiseless_with_offsets(rig, strategy, jr.split(jr.key(5), 8))
+    )
+    assert visible.sum() >= 6
+    refined_ok = visible & (refined == 0)
+    # (Concurrent, seed 5: one of the 7 visible cycles ends `inconsistent_fit`: started
+    # from the closed form, which ignores the offsets, the refinement stays in another
+    # minimum; flagged, not marked successful.)
+    assert refined_ok.sum() >= visible.sum() - 1, refined
+    assert np.all(e_refined[refined_ok] < 1e-8), e_refined
+    assert np.all(e_closed[visible] > 1e-4)  # the closed forms do not model the offsets ...
+    # ... and a successful one carries its offset from the optimum in its covariance (on
+    # noise-free data the covariance is nearly rank one, so compare traces, not NEES).
+    ok = visible & (closed == 0)
+    assert np.all(sq[ok] <= 1.001 * var[ok] + 1e-12), (sq[ok], var[ok])

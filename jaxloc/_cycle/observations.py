@@ -59,6 +59,8 @@ class CycleObservations(eqx.Module):
       expressed in robot `i`'s **body** frame (x forward, y left, z up along the
       surface normal): the camera's unprojected bearing rotated by the camera mount.
       The diagonal `i == j` is ignored.
+    - `mutual_visible`: whether each mutual sighting exists, shape `(steps, 3, 3)`;
+      default: where `mutual` is finite (the diagonal is ignored).
     - `overhead`: unit bearings of the ground robots in the overhead camera's
       optical frame, shape `(steps, 3, 3)`: `overhead[k, j]` points at robot `j` at step `k`.
     - `overhead_visible`: whether each overhead sighting exists, shape `(steps, 3)`;
@@ -73,7 +75,10 @@ class CycleObservations(eqx.Module):
     - `strategy`: `"sequential"` or `"concurrent"` (static).
 
     A sighting that was not made (a marker occluded or not detected) is missing data:
-    NaN bearings (and pixels), never a default value. Arrays are floating point: float
+    NaN bearings (and pixels), or `False` in `mutual_visible` / `overhead_visible`, never
+    a default value. The estimators use every sighting present (see
+    [`jaxloc.localize_cycle`][]); a non-finite bearing marked visible is corrupt input
+    (`nonfinite_observation`). Arrays are floating point: float
     arrays keep their dtype (float32 stays float32), integers and Python numbers become
     floats. Values are checked when they are known (not under `jit`): non-positive or
     non-finite odometry distances or sigmas raise a `ValueError` naming the field.
@@ -82,6 +87,7 @@ class CycleObservations(eqx.Module):
     mutual: Float[Array, "steps 3 3 3"]
     overhead: Float[Array, "steps 3 3"]
     overhead_visible: Bool[Array, "steps 3"]
+    mutual_visible: Bool[Array, "steps 3 3"]
     odometry: Float[Array, " moves"]
     odometry_sigma: Float[Array, " moves"]
     mutual_pixels: Float[Array, "steps 3 3 2"]
@@ -98,6 +104,7 @@ class CycleObservations(eqx.Module):
         overhead_visible: Bool[ArrayLike, "steps 3"] | None = None,
         mutual_pixels: Float[ArrayLike, "steps 3 3 2"] | None = None,
         overhead_pixels: Float[ArrayLike, "steps 3 2"] | None = None,
+        mutual_visible: Bool[ArrayLike, "steps 3 3"] | None = None,
     ):
         self.strategy = check_strategy(strategy)
         steps, moves = num_steps(strategy), num_moves(strategy)
@@ -112,6 +119,9 @@ class CycleObservations(eqx.Module):
         if overhead_visible is None:
             overhead_visible = jnp.all(jnp.isfinite(self.overhead), axis=-1)
         self.overhead_visible = jnp.asarray(overhead_visible, dtype=bool)
+        if mutual_visible is None:
+            mutual_visible = jnp.all(jnp.isfinite(self.mutual), axis=-1)
+        self.mutual_visible = jnp.asarray(mutual_visible, dtype=bool)
         if mutual_pixels is None:
             mutual_pixels = jnp.full(self.mutual.shape[:-1] + (2,), jnp.nan, dtype)
         if overhead_pixels is None:
@@ -122,6 +132,7 @@ class CycleObservations(eqx.Module):
             "mutual": (steps, 3, 3, 3),
             "overhead": (steps, 3, 3),
             "overhead_visible": (steps, 3),
+            "mutual_visible": (steps, 3, 3),
             "odometry": (moves,),
             "odometry_sigma": (moves,),
             "mutual_pixels": (steps, 3, 3, 2),

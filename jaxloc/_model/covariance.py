@@ -23,7 +23,7 @@ reported separately, never summed.
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from .._core.linalg import spd_inverse
 from .._cycle.estimate import CycleCovariance, CycleEstimate
@@ -145,13 +145,21 @@ def estimate_placements(poses: CyclePoses, strategy: str):
     return T_place, poses.T_world_overhead.wxyz_xyz
 
 
-def crlb_inputs(rig: Rig, truth: CyclePoses, odometry_sigma_rel, strategy: str):
+def crlb_inputs(
+    rig: Rig, truth: CyclePoses, odometry_sigma_rel, strategy: str, present=(None, None)
+):
     """`(T_place, T_over, data)` of [`jaxloc.cycle_crlb`][]: exact measurements, the
-    sightings the cameras make at the truth, the rig's sigmas."""
+    sightings the cameras make at the truth (and, if given, marked in `present`, the
+    masks `(mutual (steps, 3, 3), overhead (steps, 3))`), the rig's sigmas."""
     T_place, T_over = estimate_placements(truth, strategy)
     dtype = T_place.dtype
     mutual, overhead, lengths = predict(T_place, T_over, rig, strategy)
     m_vis, o_vis = visible(T_place, T_over, rig, strategy)
+    m_present, o_present = present
+    if m_present is not None:
+        m_vis = m_vis & m_present
+    if o_present is not None:
+        o_vis = o_vis & o_present
     w_px = pixel_weights(rig, dtype)
     rel = jnp.asarray(odometry_sigma_rel, dtype)
     data = CycleData(
@@ -194,6 +202,8 @@ def cycle_crlb(
     *,
     odometry_sigma_rel: float | Array,
     strategy: str | None = None,
+    mutual_visible: Bool[ArrayLike, "steps 3 3"] | None = None,
+    overhead_visible: Bool[ArrayLike, "steps 3"] | None = None,
 ) -> CycleCovariance:
     r"""Cramér–Rao lower bound of a cycle: $(J^\top \Sigma^{-1} J)^{-1}$ at the true poses.
 
@@ -214,12 +224,20 @@ def cycle_crlb(
     - `odometry_sigma_rel`: relative standard deviation of each move's measured distance
         (keyword only; a scenario's `odometry_sigma_rel`).
     - `strategy`: `"sequential"` or `"concurrent"`; default: from the number of steps.
+    - `mutual_visible`, `overhead_visible`: optional masks `(steps, 3, 3)` and
+        `(steps, 3)` of the sightings actually made (e.g. a cycle's
+        `observations.mutual_visible`): the bound of the measurements present, missing
+        sightings weighed 0. Default: every sighting in view.
 
     **Returns:** a [`jaxloc.CycleCovariance`][]; see [`jaxloc.crlb_rmse`][] for predicted
     RMSEs. Pure and differentiable in the rig and the poses (formation design).
     """
     strategy = strategy_of(truth) if strategy is None else strategy
-    return covariance_at(*crlb_inputs(rig, truth, odometry_sigma_rel, strategy), rig, strategy)
+    present = tuple(
+        None if m is None else jnp.asarray(m, bool) for m in (mutual_visible, overhead_visible)
+    )
+    inputs = crlb_inputs(rig, truth, odometry_sigma_rel, strategy, present)
+    return covariance_at(*inputs, rig, strategy)
 
 
 def crlb_rmse(covariance: CycleCovariance) -> tuple[Float[Array, "4"], Float[Array, "4"]]:

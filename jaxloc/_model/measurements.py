@@ -206,8 +206,9 @@ def cycle_data(observations: CycleObservations, rig: Rig) -> CycleData:
         return jnp.where(ok[..., None], uv, 0.0), ok
 
     mp, m_ok = choose(
-        observations.mutual_pixels, observations.mutual, from_bearings[0], off_diagonal
-    )
+        observations.mutual_pixels, observations.mutual, from_bearings[0],
+        off_diagonal & observations.mutual_visible,
+    )  # fmt: skip
     op, o_ok = choose(
         observations.overhead_pixels, observations.overhead, from_bearings[1],
         observations.overhead_visible,

@@ -60,15 +60,20 @@ def _set(observations, masks, bearing_value, pixel_value, visible=None):
     mutual_px = jnp.where(m[..., None], pixel_value, observations.mutual_pixels)
     overhead_px = jnp.where(o[..., None], pixel_value, observations.overhead_pixels)
     vis = observations.overhead_visible
+    mutual_vis = observations.mutual_visible
     if visible is not None:
         vis = jnp.where(o, visible, vis)
-    return _replace(observations, mutual, overhead, vis, mutual_px, overhead_px)
+        mutual_vis = jnp.where(m, visible, mutual_vis)
+    return _replace(observations, mutual, overhead, vis, mutual_px, overhead_px,
+                    mutual_visible=mutual_vis)  # fmt: skip
 
 
-def _replace(obs, mutual, overhead, visible, mutual_px, overhead_px, odometry=None):
+def _replace(obs, mutual, overhead, visible, mutual_px, overhead_px, odometry=None,
+             mutual_visible=None):  # fmt: skip
     return CycleObservations(
         mutual, overhead, obs.odometry if odometry is None else odometry, obs.odometry_sigma,
         obs.strategy, visible, mutual_px, overhead_px,
+        obs.mutual_visible if mutual_visible is None else mutual_visible,
     )  # fmt: skip
 
 
@@ -193,3 +198,28 @@ def _negated(observations, masks):
         jnp.where(o[..., None], jnp.nan, observations.overhead_pixels),
     )  # fmt: skip
 
+
+
+def drop_sightings(
+    observations: CycleObservations, probability: float | Array, *, key: PRNGKeyArray
+) -> CycleObservations:
+    """`observations` with each mutual and overhead sighting missing independently with
+    `probability`: its bearing and pixel NaN, and marked not visible (a marker occluded
+    or not detected). Branch free; `jit`/`vmap` apply.
+
+    **Arguments:**
+
+    - `observations`: a cycle's [`jaxloc.CycleObservations`][].
+    - `probability`: chance that each sighting is missing, in `[0, 1]`.
+    - `key`: a JAX PRNG key. Keyword only.
+
+    **Returns:** the thinned [`jaxloc.CycleObservations`][].
+    """
+    k_m, k_o = jr.split(key)
+    dtype = observations.mutual.dtype
+    shape = observations.mutual_visible.shape
+    off = np.broadcast_to(~np.eye(3, dtype=bool), shape)
+    m = jr.bernoulli(k_m, probability, shape) & off
+    o = jr.bernoulli(k_o, probability, observations.overhead_visible.shape)
+    nan, nan_px = jnp.full(3, jnp.nan, dtype), jnp.full(2, jnp.nan, dtype)
+    return _set(observations, (m, o), nan, nan_px, visible=False)

@@ -25,7 +25,7 @@ from .._core.poses import apply, rplus
 from .._cycle.layout import move_start_step, moving_robot, reference_robots
 from .._cycle.observations import CycleObservations
 from .._cycle.sightings import matvec
-from .mutual import mutual_steps
+from .mutual import cycle_bearings, mutual_steps
 from .overhead_points import overhead_problem
 from .p3p import p3p
 from .sequential import odometry_weights, scale_translations
@@ -264,7 +264,7 @@ def concurrent_formations(observations: CycleObservations):
     """The concurrent closed form: `(T_world_body, scales, scale_ok, odometry_rms,
     runner_up_scales, runner_up_ok, mutual_solutions)`, the first a `jaxlie.SE3` of batch
     `(3, 3)` at metric scale in `W` (C1's frame), `scales` `(3,)` one per formation."""
-    sols = mutual_steps(observations.mutual, reference_robots("concurrent"))
+    sols = mutual_steps(cycle_bearings(observations)[0], reference_robots("concurrent"))
     P = jnp.stack([s.T_ref_body.translation() for s in sols])
     scales, ok, rms, runner_up, runner_up_ok = _fit_concurrent_scales(observations, P)
     T = jnp.stack([scale_translations(s.T_ref_body, c).wxyz_xyz for s, c in zip(sols, scales)])

@@ -11,6 +11,7 @@ is called `successful`.
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 
 from .._core.poses import inverse
 from .._core.results import raise_if_failed, RESULTS
@@ -20,6 +21,7 @@ from .._cycle.rig import Rig
 from .._model.gates import gate_all, gate_point, gate_rivals, gated
 from .._model.measurements import cycle_data
 from .concurrent import concurrent_formations, runner_up_positions
+from .mutual import cycle_bearings
 from .overhead import solve_overhead_pose
 from .overhead_points import overhead_problem
 from .sequential import sequential_formations
@@ -47,10 +49,14 @@ def _ground_formations(observations: CycleObservations):
 
 
 def _observations_ok(observations: CycleObservations):
-    """`(finite, valid)`: the odometry is finite, and in its domain (distances >= 0, a zero
-    move leaves the scale unobservable; sigmas > 0)."""
+    """`(finite, valid)`: the odometry and every mutual bearing marked visible are finite
+    (a missing bearing is not visible), and the odometry is in its domain (distances >= 0,
+    a zero move leaves the scale unobservable; sigmas > 0)."""
     d, s = observations.odometry, observations.odometry_sigma
-    finite = jnp.all(jnp.isfinite(d)) & jnp.all(jnp.isfinite(s))
+    off_diagonal = ~np.eye(3, dtype=bool)
+    mutual_ok = jnp.all(jnp.isfinite(observations.mutual), axis=-1)
+    corrupt = jnp.any(observations.mutual_visible & off_diagonal[None] & ~mutual_ok)
+    finite = jnp.all(jnp.isfinite(d)) & jnp.all(jnp.isfinite(s)) & ~corrupt
     return finite, jnp.all(d >= 0) & jnp.all(s > 0)
 
 
@@ -97,6 +103,10 @@ def _closed_form_result(pose_result, scale_ok, mutual_result, odometry):
     """The closed form's status before the gates, by priority."""
     finite, valid = odometry
     result = RESULTS.where(scale_ok, pose_result, RESULTS.scale_unobservable)
+    # A non-finite bearing left after filling is a missing one the closed form cannot
+    # do without (corrupt input is caught below).
+    missing = mutual_result == RESULTS.nonfinite_observation
+    mutual_result = RESULTS.where(missing, RESULTS.too_few_points, mutual_result)
     result = RESULTS.where(mutual_result == RESULTS.successful, result, mutual_result)
     result = RESULTS.where(valid, result, RESULTS.invalid_observation)
     return RESULTS.where(finite, result, RESULTS.nonfinite_observation)
@@ -118,6 +128,10 @@ def closed_forms(
     )
     points, bearings, mask = overhead_problem(observations, T.translation())
     odometry = _observations_ok(observations)
+    _, free, unresolved = cycle_bearings(observations)
+    good = mutual_result == RESULTS.successful
+    mutual_result = RESULTS.where(good & unresolved, RESULTS.too_few_points, mutual_result)
+    mutual_result = RESULTS.where(free, RESULTS.unobservable, mutual_result)
     estimates = []
     for method in methods:
         alternatives = None
@@ -171,7 +185,12 @@ def localize_cycle(
     **Arguments:**
 
     - `observations`: a [`jaxloc.CycleObservations`][] (bearings in body/camera frames
-      and odometry), from the simulator, the image front end or a real robot.
+      and odometry), from the simulator, the image front end or a real robot. Any
+      mutual or overhead sighting may be missing (NaN, or not visible): a missing
+      mutual bearing is recovered where the geometry allows (from a step at which the
+      same robots stood still, directly or through the triangle's shape; see
+      `jaxloc._solvers.mutual.fill_missing_bearings`), the overhead camera's pose uses
+      the placements it saw, and the gates count only the sightings present.
     - `rig`: the team's [`jaxloc.Rig`][] (cameras, mounts, markers, pixel noise): the
       gates weigh every residual with it. The closed forms themselves use the bearings
       only (and take every camera centre and marker to be at its body origin; a rig
@@ -187,7 +206,11 @@ def localize_cycle(
     measurements (chi-square gate) and is observable (information gate; see
     `jaxloc._model.gates`): else `inconsistent_fit` (e.g. overhead images swapped between
     steps, a wrong scale branch), `unobservable` (e.g. too few distinct placements seen
-    by the overhead camera), `ambiguous` (three points, several P3P roots), or the
+    by the overhead camera, or a robot's rotation left free by a missing bearing),
+    `too_few_points` (a missing bearing the closed form cannot recover: two from one
+    triangle, or one whose robot's rotation only the other steps fix; the refinement
+    does not start from it),
+    `ambiguous` (three points, several P3P roots), or the
     solver's own failure (`degenerate_configuration`, `nonfinite_observation`,
     `invalid_observation`, `scale_unobservable`, ...). `checks.solver_result` is the
     status before the gates.

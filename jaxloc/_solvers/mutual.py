@@ -20,11 +20,11 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .._core.numerics import as_floating, safe_norm, safe_normalize
 from .._core.results import raise_if_failed, RESULTS
-from .._cycle.layout import other_robots
+from .._cycle.layout import other_robots, placement_ids
 
 
 _DEFAULT_MIN_ANGLE = 0.5 * jnp.pi / 180.0
@@ -165,3 +165,123 @@ def mutual_steps(bearings: Float[Array, "steps 3 3 3"], refs: tuple[int, ...]):
     T = sols.T_ref_body.wxyz_xyz[steps[:, None], np.argsort(perms, axis=1)]
     sols = eqx.tree_at(lambda sol: sol.T_ref_body, sols, jaxlie.SE3(T))
     return [jax.tree.map(lambda x, k=k: x[k], sols) for k in steps]
+
+
+def _fill_sources(strategy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Static tables of [`fill_missing_bearings`][], each `(steps, 3, 3)` int (the step to
+    take from, the step itself where there is none):
+
+    - `same_pair`: another step at which robots `i` and `j` both occupy the placements
+      they occupy at step `k` (a pair that stayed still): the bearing is the same there.
+    - `still_pair`: another step at which the observer `i` and the third robot `c` both
+      occupy the same placements as at step `k`: their relative pose is known there.
+    - `same_observer`: another step at which the observer `i` occupies the same
+      placement (the data determine its rotation).
+    """
+    ids = placement_ids(strategy)
+    steps = ids.shape[0]
+    same_pair = np.tile(np.arange(steps)[:, None, None], (1, 3, 3))
+    still_pair = same_pair.copy()
+    same_observer = same_pair.copy()
+    for k in range(steps):
+        others = sorted((k2 for k2 in range(steps) if k2 != k), key=lambda k2: abs(k2 - k))
+        for i in range(3):
+            for j in range(3):
+                if i == j:
+                    continue
+                c = 3 - i - j
+                pair = [k2 for k2 in others if ids[k2, i] == ids[k, i] and ids[k2, j] == ids[k, j]]
+                still = [k2 for k2 in others if ids[k2, i] == ids[k, i] and ids[k2, c] == ids[k, c]]
+                same = [k2 for k2 in others if ids[k2, i] == ids[k, i]]
+                same_pair[k, i, j] = pair[0] if pair else k
+                still_pair[k, i, j] = still[0] if still else k
+                same_observer[k, i, j] = same[0] if same else k
+    return same_pair, still_pair, same_observer
+
+
+def fill_missing_bearings(
+    bearings: Float[Array, "steps 3 3 3"], present: Bool[Array, "steps 3 3"], strategy: str
+) -> tuple[Float[Array, "steps 3 3 3"], Bool[Array, ""], Bool[Array, ""]]:
+    r"""The mutual bearings of a cycle with the missing ones the closed forms can recover
+    filled in (the others NaN), and two flags: `free`, a robot's rotation is left free by
+    the data; `unresolved`, a bearing is only known to lie on its cone (see below).
+
+    Branch-free, in two passes over every sighting at once:
+
+    1. A bearing between two robots that stayed still is the same at another step:
+       taken from there (exact).
+    2. A triangle missing one bearing `u_ab` (robot `a` does not see `b`; the five others
+       present) still has its shape: `psi_a = pi - psi_b - psi_c` (angle sum), so `u_ab`
+       lies on the cone of half-angle `psi_a` around `u_ac`. Its azimuth on the cone
+       comes from `a`'s pose relative to `c` at another step where both kept their
+       placements (exact). Otherwise the azimuth is not known to the closed form: the
+       bearing is filled with a finite stand-in and flagged. If `a` occupies its
+       placement at this step only, nothing determines its rotation about `u_ac`
+       (`free`: the closed forms say `unobservable`); else the data may determine it
+       through the other steps and the overhead camera, but only up to a discrete
+       choice (e.g. the concurrent strategy's formation turned about the C1-C3 line
+       until the overhead ray meets C2's circle a second time) that the closed forms
+       cannot make (`unresolved`: they say `too_few_points`).
+
+    A triangle missing two or more bearings after pass 1 is left with NaN (the closed
+    forms report `too_few_points`).
+
+    **Arguments:** `bearings` `(steps, 3, 3, 3)` as `CycleObservations.mutual`;
+    `present` `(steps, 3, 3)`, whether each bearing was measured (and is finite);
+    `strategy` (static).
+    """
+    dtype = bearings.dtype
+    off = ~np.eye(3, dtype=bool)[None]
+    ok = present & off
+    u = jnp.where(ok[..., None], bearings, _nominal_bearings(dtype)[None])
+    same_pair, still_pair, same_observer = _fill_sources(strategy)
+    steps = u.shape[0]
+    K = np.arange(steps)[:, None, None]
+    I, J = np.arange(3)[None, :, None], np.arange(3)[None, None, :]
+    C = 3 - I - J  # the third robot (meaningless on the diagonal, masked out)
+    C = np.where(I == J, 0, C)
+    # 1. The same pair, still at another step.
+    take = ~ok & ok[same_pair, I, J]
+    u = jnp.where(take[..., None], u[same_pair, I, J], u)
+    ok = ok | take
+    # 2. One bearing missing from a triangle: on the cone of its angle.
+    u = safe_normalize(u)
+    sols = jax.vmap(lambda b: mutual_localization(b, 0, throw=False))(u)
+    R = jax.vmap(jax.vmap(lambda q: jaxlie.SO3(q).as_matrix()))(sols.T_ref_body.wxyz_xyz[..., :4])
+    solved = (sols.result == RESULTS.successful) & jnp.all(ok | ~off, axis=(1, 2))
+    u_ac, u_ba, u_bc = u[K, I, C], u[K, J, I], u[K, J, C]
+    u_ca, u_cb = u[K, C, I], u[K, C, J]
+    psi_b = jax.vmap(_angle)(u_ba.reshape(-1, 3), u_bc.reshape(-1, 3)).reshape(ok.shape)
+    psi_c = jax.vmap(_angle)(u_ca.reshape(-1, 3), u_cb.reshape(-1, 3)).reshape(ok.shape)
+    psi_a = jnp.clip(jnp.pi - psi_b - psi_c, 0.0, jnp.pi)
+    others = ok[K, I, C] & ok[K, J, I] & ok[K, J, C] & ok[K, C, I] & ok[K, C, J]
+    # Azimuth from a's pose relative to c where both were still (exact).
+    d = safe_normalize(jnp.sin(psi_a)[..., None] * u_cb - jnp.sin(psi_b)[..., None] * u_ca)
+    R_a, R_c = R[still_pair, I], R[still_pair, C]  # a's and c's rotations in robot 0's frame
+    R_ca = jnp.swapaxes(R_c, -1, -2) @ R_a
+    guess = jnp.einsum("...ji,...j->...i", R_ca, d)
+    have = solved[still_pair] & (still_pair != K)
+    # Else any direction not along the cone's axis: a finite stand-in, flagged.
+    z_axis = jnp.broadcast_to(jnp.asarray([0.0, 0.0, 1.0], dtype), u_ac.shape)
+    arbitrary = jnp.where(jnp.abs(u_ac[..., 2:3]) < 0.9, z_axis, jnp.roll(z_axis, 1, axis=-1))
+    guess = jnp.where(have[..., None], guess, arbitrary)
+    e1 = safe_normalize(u_ac)
+    side = safe_normalize(guess - jnp.sum(guess * e1, -1, keepdims=True) * e1)
+    cone = jnp.cos(psi_a)[..., None] * e1 + jnp.sin(psi_a)[..., None] * side
+    take = ~ok & others & off
+    u = jnp.where(take[..., None], cone, u)
+    inexact = off & ~ok & ~(take & have)  # left NaN, or a stand-in
+    ok = ok | take
+    free = jnp.any(inexact & (same_observer == K))
+    return jnp.where((ok | ~off)[..., None], u, jnp.nan), free, jnp.any(inexact) & ~free
+
+
+def cycle_bearings(
+    observations,
+) -> tuple[Float[Array, "steps 3 3 3"], Bool[Array, ""], Bool[Array, ""]]:
+    """The mutual bearings of a [`jaxloc.CycleObservations`][] as the closed forms use
+    them: those marked visible and finite, the missing ones filled where the geometry
+    allows, and the flags `free` and `unresolved` of [`fill_missing_bearings`][]."""
+    mutual = observations.mutual
+    present = observations.mutual_visible & jnp.all(jnp.isfinite(mutual), axis=-1)
+    return fill_missing_bearings(mutual, present, observations.strategy)

@@ -17,7 +17,7 @@ from .._core.poses import compose as compose_poses
 from .._cycle.layout import moving_robot, reference_robots
 from .._cycle.observations import CycleObservations
 from .._model.measurements import move_lengths
-from .mutual import mutual_steps
+from .mutual import cycle_bearings, mutual_steps
 
 
 def odometry_weights(observations: CycleObservations) -> Float[Array, " moves"]:
@@ -48,7 +48,7 @@ def _chain(observations: CycleObservations):
     """Poses of every step in step-0 units (circumdiameter of the first formation = 1)."""
     refs = reference_robots("sequential")
     movers = moving_robot("sequential")
-    sols = mutual_steps(observations.mutual, refs)
+    sols = mutual_steps(cycle_bearings(observations)[0], refs)
     T = [sols[0].T_ref_body]
     for k in range(1, 4):
         ref, mover = refs[k], int(movers[k - 1])

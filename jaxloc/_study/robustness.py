@@ -3,20 +3,27 @@ whether each `successful` estimate is consistent with its own covariance.
 
 The gates' promise (DESIGN §7) is that no wrong pose is marked `successful`; a
 [`corrupted_trial`][] checks it on one cycle. The fuzz tests run it over random
-examples, `benchmarks/corrupted_cycles.py` over 10^5 seeded cycles."""
+examples, `benchmarks/corrupted_cycles.py` over 10^5 seeded cycles; a
+[`missing_data_trial`][] drops sightings at random (`tests/test_missing.py`,
+`benchmarks/missing_data.py`)."""
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._core.linalg import adjugate3
+from .._model.covariance import crlb_inputs
+from .._model.gates import formation_size, observable
+from .._model.measurements import normal_equations
 from .._refine.cycle import refine_cycle
-from .._sim.defects import corrupt_observations
+from .._sim.defects import corrupt_observations, drop_sightings
 from .._sim.scenario import Scenario
 from .._sim.simulate import simulate_cycle
 from .._solvers.localize import localize_cycle
+from .trial import estimate_all
 
 
 #: 99.99% quantile of chi-square with 3 degrees of freedom: a consistent estimate's
@@ -92,4 +99,67 @@ def corrupted_trial(
         "closed_nees": position_nees(closed, true_pos),
         "refined": refined.result._value,
         "refined_nees": position_nees(refined, true_pos),
+    }
+
+
+#: Smallest eigenvalue of a Jacobi-scaled (unit-diagonal) Fisher information for
+#: [`nonsingular`][]: an exactly singular direction (a rotation no measurement touches)
+#: sits at rounding level, 1e-16-1e-13 in float64.
+MIN_SCALED_EIGENVALUE = 1e-10
+
+
+def nonsingular(information: Float[Array, "n n"]) -> Array:
+    """Whether a Fisher information matrix is nonsingular beyond rounding: its
+    Jacobi-scaled smallest eigenvalue above `MIN_SCALED_EIGENVALUE`. (The gates' Cholesky
+    test can pass an exactly singular matrix whose pivots round to a tiny positive
+    number; a study classifying cycles by observability uses this stricter test.)"""
+    dg = jnp.diag(information)
+    d = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
+    scaled = information * d[:, None] * d[None, :]
+    return jnp.all(dg > 0) & (jnp.linalg.eigvalsh(scaled)[0] > MIN_SCALED_EIGENVALUE)
+
+
+def missing_data_trial(scenario: Scenario, key: PRNGKeyArray, probability) -> dict[str, Array]:
+    """One missing-data trial (issue 20): a simulated cycle of `scenario` with each
+    sighting missing independently with `probability` ([`jaxloc.drop_sightings`][]), the
+    robust closed form, the refinement started from it, and the Cramér–Rao bound of the
+    measurements present at the true poses (the study trial's `estimate_all`).
+
+    **Returns:** `visible` (the simulated moves kept every robot in view), `observable`
+    (the information of the measurements present is [`nonsingular`][] and the bound
+    passes the gates' observability test), `missing` (how many sightings were
+    dropped), the closed form's and the refinement's status codes (`closed`, `refined`)
+    and largest position NEES over the four end-of-cycle positions (`closed_nees`,
+    `refined_nees`; see [`position_nees`][]), `finite` (every pose of both finite), and
+    C's squared refined position error and bound (`sq_error_c`, `bound_c`, m^2)."""
+    k_sim, k_drop = jr.split(key)
+    truth, obs, visible = simulate_cycle(scenario, k_sim)
+    obs = drop_sightings(obs, probability, key=k_drop)
+    strategy = scenario.strategy
+    (closed, refined), bound = estimate_all(
+        obs, scenario.rig, ("robust", "refined"), truth=truth.poses,
+        odometry_sigma_rel=scenario.odometry_sigma_rel,
+    )  # fmt: skip
+    present = (obs.mutual_visible, obs.overhead_visible)
+    T_place, T_over, data = crlb_inputs(
+        scenario.rig, truth.poses, scenario.odometry_sigma_rel, strategy, present
+    )
+    true_pos = final_positions(truth.poses)
+    e = final_positions(refined.poses)[0] - true_pos[0]
+    poses = [x.poses.T_world_body.wxyz_xyz for x in (closed, refined)]
+    poses += [x.poses.T_world_overhead.wxyz_xyz for x in (closed, refined)]
+    off_diagonal = ~np.eye(3, dtype=bool)
+    return {
+        "visible": visible,
+        "observable": observable(bound, formation_size(T_place))
+        & nonsingular(normal_equations(T_place, T_over, data, scenario.rig, strategy)[1]),
+        "missing": jnp.sum(~obs.mutual_visible & off_diagonal[None])
+        + jnp.sum(~obs.overhead_visible),
+        "closed": closed.result._value,
+        "refined": refined.result._value,
+        "closed_nees": jnp.max(position_nees(closed, true_pos)),
+        "refined_nees": jnp.max(position_nees(refined, true_pos)),
+        "finite": jnp.all(jnp.stack([jnp.all(jnp.isfinite(T)) for T in poses])),
+        "sq_error_c": jnp.sum(e * e),
+        "bound_c": jnp.trace(bound.position[0]),
     }

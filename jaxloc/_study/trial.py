@@ -126,9 +126,10 @@ def estimate_all(
 ):  # fmt: skip
     """Every requested estimator on the same observations (shared ground chain), gated
     together: the closed forms, the refinement started from the robust closed form, and
-    (with `truth`) the Cramér–Rao bound at the true poses, in one `vmap` of the gates
-    (one traced copy of the gates and of the covariance per kind: polished for the
-    closed forms, at the point for the converged refinement and the true poses).
+    (with `truth`) the Cramér–Rao bound at the true poses of the sightings present, in
+    one `vmap` of the gates (one traced copy of the gates and of the covariance per kind:
+    polished for the closed forms, at the point for the converged refinement and the
+    true poses).
 
     **Returns:** `(estimates, bound)`: the estimates in the order of `methods`, and the
     bound's [`jaxloc.CycleCovariance`][] (`None` without `truth`)."""
@@ -152,7 +153,10 @@ def estimate_all(
     # A converged refinement and the true poses are gated where they are.
     points = [gate_point(estimates["refined"], data, strategy)] if runner_up is not None else []
     if truth is not None:
-        T_place, T_over, bound_data = crlb_inputs(rig, truth, odometry_sigma_rel, strategy)
+        present = (observations.mutual_visible, observations.overhead_visible)
+        T_place, T_over, bound_data = crlb_inputs(
+            rig, truth, odometry_sigma_rel, strategy, present
+        )
         final = end_poses(T_place, T_over, strategy)
         points.append(GatePoint(T_place, T_over, final, bound_data, RESULTS.successful))
     gates = gate_all(points, rig, strategy, polish=False) if points else []

@@ -6,11 +6,13 @@ The image front end produces the same [`jaxloc.CycleObservations`][] the simulat
 [`jaxloc.load_team`][] (`jaxloc._vision.team`).
 
 **What is measured.** At step `k`: C1's image gives the bearings of C2 and C3, C2's of C1
-and C3, C3's of C1 and C2 (all required: mutual localization needs all six), and C's
-image the overhead bearings of all three (at least four distinct robot placements
-over the cycle must be seen). A required marker that is missing, an ambiguous colour
-(two blobs pass every test), an unreadable image or a failed estimate raise a
-`ValueError` naming the team-file field and the value: never a wrong pose.
+and C3, C3's of C1 and C2, and C's image the overhead bearings of all three. A marker
+that was not detected (occluded, out of view) or is cut by the image edge is a missing
+sighting: the estimators use every sighting present, and the status says
+`unobservable` (or why else) when too little is left. At least four distinct robot
+placements over the cycle must be seen by C. An ambiguous colour (two blobs pass every
+test), an unreadable image or a failed estimate raise a `ValueError` naming the
+team-file field and the value: never a wrong pose.
 
 **The rig.** The team's cameras enter the gates, the refinement and the covariance
 exactly as calibrated ([`jaxloc.rig_for`][]): every camera file's model, distortion
@@ -43,7 +45,6 @@ from .markers import (
     check_image,
     DEFAULT_MARKER_COLORS,
     detect_markers,
-    MarkerColor,
     MarkerDetection,
     read_image,
 )
@@ -148,26 +149,8 @@ def detect_team_images(
                         f"pass every test for colour `robots.{t}.marker`; refusing to guess "
                         "(set `detection.on_ambiguous: largest` to take the largest)."
                     )
-                if obs != "C" and dt.detected and dt.truncated:
-                    raise ValueError(
-                        f"Marker of {t} is cut by the edge of image {label} (image border or "
-                        "mirror annulus): its centroid would be biased by pixels. Robot "
-                        f"{obs} must see {t} whole at step {k}; re-take the image with {t} "
-                        "further inside the field of view."
-                    )
-                if obs != "C" and not dt.detected:
-                    raise ValueError(
-                        f"Marker of {t} (colour `robots.{t}.marker` = "
-                        f"{_color_text(team.markers[t])}) "
-                        f"was not found in image {label}: robot {obs} must see {t} at step {k} "
-                        "(mutual localization needs all six bearings)."
-                    )
             out[(k, obs)] = det
     return out
-
-
-def _color_text(c: MarkerColor) -> str:
-    return f"hue {c.hue_low}..{c.hue_high}, sat >= {c.sat_min}, val >= {c.val_min}"
 
 
 def observations_from_detections(
@@ -175,11 +158,12 @@ def observations_from_detections(
 ) -> CycleObservations:
     """Bearings (body frames for the ground robots, camera frame for C), pixels (as
     detected, in each calibrated camera's image) and odometry of one cycle from its
-    detections; an undetected overhead marker is missing (NaN)."""
+    detections; an undetected marker, or one cut by the image edge, is missing (NaN and
+    not visible), in any image."""
     steps = num_steps(team.strategy)
     idx = {"C1": 0, "C2": 1, "C3": 2}
     mounts = {"C1": c1_mount(team), "C2": R_BODY_OMNI, "C3": R_BODY_OMNI}
-    mutual = np.zeros((steps, 3, 3, 3))
+    mutual = np.full((steps, 3, 3, 3), np.nan)
     mpix = np.full((steps, 3, 3, 2), np.nan)
     over = np.full((steps, 3, 3), np.nan)
     over_vis = np.zeros((steps, 3), bool)
@@ -188,6 +172,10 @@ def observations_from_detections(
         for obs in GROUND:
             i = idx[obs]
             for t, dt in detections[(k, obs)].items():
+                # An undetected marker, or one cut by the image edge (its centroid would
+                # be biased), is a missing sighting: NaN, and the estimators do without.
+                if not dt.detected or dt.truncated:
+                    continue
                 j = idx[t]
                 b = np.asarray(_unproject(team.cameras[obs], jnp.asarray(dt.pixel)))
                 mutual[k, i, j] = mounts[obs] @ b

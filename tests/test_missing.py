@@ -1,0 +1,220 @@
+"""Missing sightings everywhere (issue 20.2): any mutual or overhead sighting may be
+missing (NaN, or not visible); the closed forms use what is there where the geometry
+allows, the refinement every measurement present, and the status says why when too
+little is left. Never a wrong pose marked successful, never NaN."""
+
+import functools as ft
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import jaxloc
+import numpy as np
+import pytest
+from jaxloc._study.robustness import missing_data_trial, WRONG_POSE_NEES
+
+
+RESULTS = jaxloc.RESULTS
+
+
+def _without(obs, m_mask, o_mask):
+    """`obs` with the sightings in the masks missing: NaN and not visible (traced)."""
+    nan = jnp.asarray(jnp.nan, obs.mutual.dtype)
+    return jaxloc.CycleObservations(
+        jnp.where(m_mask[..., None], nan, obs.mutual),
+        jnp.where(o_mask[..., None], nan, obs.overhead),
+        obs.odometry, obs.odometry_sigma, obs.strategy,
+        overhead_visible=obs.overhead_visible & ~o_mask,
+        mutual_pixels=jnp.where(m_mask[..., None], nan, obs.mutual_pixels),
+        overhead_pixels=jnp.where(o_mask[..., None], nan, obs.overhead_pixels),
+        mutual_visible=obs.mutual_visible & ~m_mask,
+    )  # fmt: skip
+
+
+def _one_missing_masks(steps):
+    """Every single sighting removed in turn: `(names, mutual masks, overhead masks)`."""
+    names, m, o = [], [], []
+    for k in range(steps):
+        for i in range(3):
+            for j in range(3):
+                if i != j:
+                    names.append(("mutual", k, i, j))
+                    m.append(np.zeros((steps, 3, 3), bool))
+                    m[-1][k, i, j] = True
+                    o.append(np.zeros((steps, 3), bool))
+        for j in range(3):
+            names.append(("overhead", k, j))
+            m.append(np.zeros((steps, 3, 3), bool))
+            o.append(np.zeros((steps, 3), bool))
+            o[-1][k, j] = True
+    return names, np.stack(m), np.stack(o)
+
+
+@ft.partial(jax.jit, static_argnames="strategy")
+def _each_removed(strategy, m_masks, o_masks):
+    scenario = jaxloc.Scenario.paper(strategy, pixel_sigma=0.0, odometry_sigma_rel=1e-9)
+    truth, obs, visible = jaxloc.simulate_cycle(scenario, jr.key(3))
+
+    def one(m, o):
+        thinned = _without(obs, m, o)
+        closed = jaxloc.localize_cycle(thinned, scenario.rig, throw=False)
+        refined = jaxloc.refine_cycle(thinned, scenario.rig, closed, throw=False)
+        return closed, refined
+
+    closed, refined = jax.vmap(one)(m_masks, o_masks)
+    return truth, visible, closed, refined
+
+
+def _pose_error(estimate, truth):
+    """Largest position error (m) and rotation error (rad) over every pose of the cycle."""
+    est = np.concatenate([np.asarray(estimate.T_world_body.wxyz_xyz).reshape(-1, 7),
+                          np.asarray(estimate.T_world_overhead.wxyz_xyz)[None]])  # fmt: skip
+    tru = np.concatenate([np.asarray(truth.T_world_body.wxyz_xyz).reshape(-1, 7),
+                          np.asarray(truth.T_world_overhead.wxyz_xyz)[None]])  # fmt: skip
+    pos = np.max(np.abs(est[:, 4:] - tru[:, 4:]))
+    # Rotation angle between unit quaternions: 2 acos |<q_a, q_b>|.
+    dot = np.clip(np.abs(np.sum(est[:, :4] * tru[:, :4], axis=-1)), 0.0, 1.0)
+    return float(pos), float(np.max(2.0 * np.arccos(dot)))
+
+
+def _unobservable_alone(strategy, name):
+    """Whether removing this one sighting leaves a robot's rotation undetermined: an
+    observer's bearing at a placement that occurs at that step only (sequential: C2 at
+    step 0, C1 at step 3; concurrent: C2 and C3 at every step)."""
+    if name[0] != "mutual":
+        return False
+    _, k, i, _ = name
+    ids = jaxloc.placement_ids(strategy)
+    return int(np.sum(ids == ids[k, i])) == 1
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_each_sighting_removed_in_turn(strategy):
+    steps = len(jaxloc.placement_ids(strategy))
+    names, m, o = _one_missing_masks(steps)
+    truth, visible, closed, refined = _each_removed(strategy, jnp.asarray(m), jnp.asarray(o))
+    assert bool(visible)
+    for n, name in enumerate(names):
+        c = jax.tree.map(lambda x, n=n: x[n], closed)
+        r = jax.tree.map(lambda x, n=n: x[n], refined)
+        for est in (c, r):
+            leaves = jax.tree.leaves((est.poses, est.checks.chi2))
+            assert all(np.all(np.isfinite(np.asarray(x))) for x in leaves), name
+        if _unobservable_alone(strategy, name):
+            assert c.result == RESULTS.unobservable, name
+            assert r.result == RESULTS.unobservable, name
+            continue
+        # Sequential: every other sighting can be done without, by the closed form
+        # exactly. Concurrent: a missing bearing of C1 leaves a formation's turn about
+        # the line to the other robot to the overhead camera (up to a discrete choice
+        # the closed form cannot make): `too_few_points`, no refinement.
+        if strategy == "concurrent" and name[0] == "mutual":
+            assert c.result == RESULTS.too_few_points, name
+            assert r.result == RESULTS.too_few_points, name
+            continue
+        for est in (c, r):
+            assert est.result == RESULTS.successful, name
+            pos, rot = _pose_error(est.poses, truth.poses)
+            # (Rotation angles from quaternions: acos near 1 resolves ~1e-8 rad.)
+            assert pos < 1e-8 and rot < 1e-6, (name, pos, rot)
+    ok = np.asarray(refined.result._value) == 0
+    assert ok.sum() == (32 if strategy == "sequential" else 9), ok.sum()
+
+
+@ft.partial(jax.jit, static_argnames="strategy")
+def _random_missing(strategy, keys, probability):
+    base = jaxloc.Scenario.paper(strategy)
+    return jax.vmap(lambda k: missing_data_trial(base, k, probability))(keys)
+
+
+@pytest.mark.parametrize("strategy", ["sequential", "concurrent"])
+def test_random_missing_sightings_never_a_wrong_pose(strategy):
+    """5% of the sightings missing at random: whatever is marked successful is right
+    (NEES below `WRONG_POSE_NEES`, as `tests/test_fuzz.py`), nothing is NaN, and most
+    cycles are still localized."""
+    out = jax.device_get(_random_missing(strategy, jr.split(jr.key(20), 128), 0.05))
+    assert np.all(out["finite"])
+    vis = out["visible"]
+    for stage in ("closed", "refined"):
+        ok = vis & (out[stage] == 0)
+        nees = out[f"{stage}_nees"][ok]
+        assert np.all(nees < WRONG_POSE_NEES), (stage, nees.max())
+    observable = vis & out["observable"]
+    # Concurrent: a missing bearing of C1 (a quarter of the cycles) is not localized
+    # (`too_few_points`; see test_each_sighting_removed_in_turn).
+    localized = np.mean(out["refined"][observable] == 0)
+    assert localized > (0.9 if strategy == "sequential" else 0.6), localized
+    # No successful estimate on a cycle whose measurements do not determine it.
+    assert not np.any(vis & ~out["observable"] & (out["refined"] == 0))
+
+
+def test_missing_is_not_corrupt():
+    """A NaN bearing left to the default visibility is missing (the cycle is still
+    localized); the same NaN marked visible is corrupt input (`nonfinite_observation`)."""
+    scenario = jaxloc.Scenario.paper("sequential", pixel_sigma=0.0)
+    truth, obs, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
+    solve = jax.jit(lambda o: jaxloc.localize_cycle(o, scenario.rig, throw=False))
+    mutual = obs.mutual.at[1, 1, 2].set(jnp.nan)
+    missing = jaxloc.CycleObservations(mutual, obs.overhead, obs.odometry, obs.odometry_sigma,
+                                       "sequential")  # fmt: skip
+    assert not bool(missing.mutual_visible[1, 1, 2])
+    assert solve(missing).result == RESULTS.successful
+    corrupt = jaxloc.CycleObservations(
+        mutual, obs.overhead, obs.odometry, obs.odometry_sigma, "sequential",
+        mutual_visible=np.ones((4, 3, 3), bool),
+    )  # fmt: skip
+    assert solve(corrupt).result == RESULTS.nonfinite_observation
+    with pytest.raises(ValueError, match=r"mutual_visible"):
+        jaxloc.CycleObservations(mutual, obs.overhead, obs.odometry, obs.odometry_sigma,
+                                 "sequential", mutual_visible=np.ones((3, 3), bool))  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_fill_missing_bearings_jit_vmap_and_dtype(dtype):
+    """The closed forms' filling is branch-free: eager == jit, vmap == loop, the input's
+    dtype kept; a bearing between two robots that stayed still is exact, one on its
+    triangle's cone too."""
+    from jaxloc._solvers.mutual import fill_missing_bearings
+
+    scenario = jaxloc.Scenario.paper("sequential", pixel_sigma=0.0)
+    _, obs, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
+    u = obs.mutual.astype(dtype)
+    present = np.ones((4, 3, 3), bool)
+    present[0, 0, 2] = False  # C1 -> C3 at step 0: the same at step 1 (both still)
+    present[1, 1, 2] = False  # C2 -> C3 at step 1: on the cone, C1 and C2 still at step 2
+    present = jnp.asarray(present)
+    filled, free, unresolved = fill_missing_bearings(u, present, "sequential")
+    assert filled.dtype == dtype and not bool(free) and not bool(unresolved)
+    tol = 1e-4 if dtype == jnp.float32 else 1e-10
+    off = ~np.eye(3, dtype=bool)
+    np.testing.assert_allclose(np.asarray(filled)[:, off], np.asarray(u)[:, off], atol=tol)
+    jitted = jax.jit(fill_missing_bearings, static_argnames="strategy")
+    np.testing.assert_allclose(jitted(u, present, strategy="sequential")[0], filled, atol=tol)
+    batch = jnp.stack([u, u])
+    masks = jnp.stack([present, jnp.ones_like(present)])
+    out = jax.vmap(lambda b, p: fill_missing_bearings(b, p, "sequential"))(batch, masks)[0]
+    np.testing.assert_allclose(out[0], filled, atol=tol)
+    # Two bearings missing from one triangle, neither recoverable: left NaN.
+    two = present.at[3, 1, 0].set(False).at[3, 2, 0].set(False)
+    filled2, free2, unresolved2 = fill_missing_bearings(u, two, "sequential")
+    assert np.all(np.isnan(np.asarray(filled2[3, 1, 0]))) and bool(unresolved2)
+    # C1 at step 3 (a placement of that step only) not seeing C2: its rotation is free.
+    _, free3, _ = fill_missing_bearings(u, present.at[3, 0, 1].set(False), "sequential")
+    assert bool(free3)
+
+
+def test_bound_of_the_measurements_present():
+    """`cycle_crlb` with visibility masks: the bound of what was measured, larger than
+    with every sighting."""
+    scenario = jaxloc.Scenario.paper("sequential")
+    truth, obs, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
+    m = np.ones((4, 3, 3), bool)
+    m[2, 0, 1] = False
+    o = np.ones((4, 3), bool)
+    o[1, 2] = False
+    full = jaxloc.cycle_crlb(scenario.rig, truth.poses, odometry_sigma_rel=0.01)
+    fewer = jaxloc.cycle_crlb(scenario.rig, truth.poses, odometry_sigma_rel=0.01,
+                              mutual_visible=m, overhead_visible=o)  # fmt: skip
+    t_full = np.trace(np.asarray(full.position), axis1=-2, axis2=-1)
+    t_fewer = np.trace(np.asarray(fewer.position), axis1=-2, axis2=-1)
+    assert np.all(t_fewer >= t_full - 1e-15) and t_fewer[0] > t_full[0]
