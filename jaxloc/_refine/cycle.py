@@ -555,8 +555,8 @@ def refine_cycle(
     the maximum-likelihood estimate given the inliers. An outlier in a sighting nothing
     else checks (a robot's pose seen in one image only, whose two sightings fix its
     rotation) cannot be told from its partner; rejecting either leaves that rotation
-    undetermined: the cycle is `unobservable`, not silently wrong. `rejected` names the rejected sightings (a
-    [`jaxloc.RejectedSightings`][]; listed by [`jaxloc.rejected_sightings`][]);
+    undetermined: the cycle is `unobservable`. `rejected` names the rejected sightings
+    (a [`jaxloc.RejectedSightings`][]; listed by [`jaxloc.rejected_sightings`][]);
     `stats["num_steps"]` counts the steps of every solve (each at most `max_steps`).
 
     Single cycle; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad`.
