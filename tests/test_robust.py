@@ -237,3 +237,15 @@ def test_rejected_sightings_lists_mutual_then_overhead():
     batched = jax.tree.map(lambda x: jnp.stack([x, x]), est)
     with pytest.raises(ValueError, match="one estimate"):
         jaxloc.rejected_sightings(batched)
+
+
+def test_study_method_robust_refined():
+    """`run_trial` with "robust-refined": on clean cycles the same as "refined"."""
+    keys = jr.split(jr.key(0), 4)
+    out = jax.jit(
+        jax.vmap(lambda k: jaxloc.run_trial(SCENARIO, k, ("refined", "robust-refined")))
+    )(keys)
+    assert np.all(np.asarray(out.gated) == 0)
+    np.testing.assert_allclose(
+        np.asarray(out.position[:, 1]), np.asarray(out.position[:, 0]), atol=1e-3
+    )
