@@ -69,6 +69,8 @@ from ._cycle.estimate import (
     CycleEstimate as CycleEstimate,
     CycleStarts as CycleStarts,
     FitCheck as FitCheck,
+    rejected_sightings as rejected_sightings,
+    RejectedSightings as RejectedSightings,
 )
 from ._cycle.layout import (
     CAMERAS as CAMERAS,
@@ -116,6 +118,7 @@ from ._model.covariance import (
 from ._refine.cycle import refine_cycle as refine_cycle
 from ._refine.pose import POSE_SOLVERS as POSE_SOLVERS, refine_overhead_pose as refine_overhead_pose
 from ._sim.defects import (
+    add_outliers as add_outliers,
     corrupt_observations as corrupt_observations,
     DEFECTS as DEFECTS,
     drop_sightings as drop_sightings,

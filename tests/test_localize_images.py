@@ -283,3 +283,49 @@ def test_concurrent_cycle_from_images(tmp_path):
     pos, _ = _errors(res.estimate, truth)
     assert np.all(pos < 0.05), pos
     assert jnp.isfinite(res.estimate.poses.T_world_overhead.wxyz_xyz).all()
+
+
+@pytest.mark.slow
+def test_cli_robust_loss_names_a_distractor(cycle, tmp_path, capsys, monkeypatch):
+    """A detection 40 px off (a distractor taken for C2's marker in C's image of step 2):
+    `jaxloc localize --loss huber` leaves it out, prints it and writes it; the Python
+    front end returns it."""
+    import dataclasses
+
+    import jaxloc._vision.localize as frontend
+    from jaxloc._cli.images import register
+
+    detect = frontend.detect_team_images
+
+    def with_distractor(team, images=None):
+        dets = detect(team, images)
+        d = dets[(2, "C")]["C2"]
+        dets[(2, "C")]["C2"] = dataclasses.replace(d, pixel=d.pixel + np.array([40.0, 0.0]))
+        return dets
+
+    monkeypatch.setattr(frontend, "detect_team_images", with_distractor)
+    res = localize_images(cycle["team"], refine=True, covariance=False, loss="huber")
+    assert res.method == "refined" and bool(res.estimate.result == jaxloc.RESULTS.successful)
+    assert res.rejected == [("overhead", 2, "C", "C2")]
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    out = tmp_path / "poses.json"
+    args = parser.parse_args(["localize", "--team", str(cycle["dir"] / "team.yaml"),
+                              "--loss", "huber", "--out", str(out)])  # fmt: skip
+    assert args.func(args) == 0
+    text = capsys.readouterr().out
+    assert "Rejected sightings (huber loss, outliers left out): 1" in text
+    assert "step 2: overhead camera C seeing C2 (overhead)" in text
+    d = json.loads(out.read_text())
+    assert d["rejected_sightings"] == [
+        {"kind": "overhead", "step": 2, "observer": "C", "target": "C2"}
+    ]
+    # Argument errors name the option and the value, before any image is read.
+    for argv, match in ((["--loss-scale", "2"], "--loss-scale 2.0 needs --loss"),
+                        (["--loss", "huber", "--loss-scale", "-1"], "positive.*-1.0"),
+                        (["--loss", "huber", "--no-refine"], "drop --no-refine")):  # fmt: skip
+        args = parser.parse_args(["localize", "--team", str(cycle["dir"] / "team.yaml"), *argv])
+        with pytest.raises(ValueError, match=match):
+            args.func(args)
+    with pytest.raises(ValueError, match="`loss`"):
+        localize_images(cycle["team"], loss="l2")

@@ -225,7 +225,18 @@ def _cmd_localize(args) -> int:
     out = args.out or os.path.splitext(args.team)[0] + "_poses.json"
     check_outputs(argparse.Namespace(out=out), files=("out",))
     team = load_team(args.team)
-    res = localize_images(team, refine=not args.no_refine)
+    if args.no_refine and (args.loss is not None or args.loss_scale is not None):
+        raise ValueError("--loss and --loss-scale apply to the refinement; drop --no-refine.")
+    if args.loss_scale is not None and args.loss is None:
+        raise ValueError(f"--loss-scale {args.loss_scale} needs --loss huber or --loss cauchy.")
+    if args.loss_scale is not None and not (0 < args.loss_scale < float("inf")):
+        raise ValueError(
+            f"--loss-scale must be a positive number of standard deviations; got "
+            f"{args.loss_scale}."
+        )
+    res = localize_images(
+        team, refine=not args.no_refine, loss=args.loss, loss_scale=args.loss_scale
+    )
     d = res.to_dict()
     print(f"{team.strategy} cycle from {args.team}: {d['status']} ({d['method']})")
     print("Poses at the end of the cycle, in W = C1's body frame at the start (m, deg):")
@@ -236,6 +247,13 @@ def _cmd_localize(args) -> int:
         if "position_std_m" in p:
             std = "  std " + ", ".join(f"{100 * x:.2f}" for x in p["position_std_m"]) + " cm"
         print(f"  {name:<3} position ({pos})  yaw/pitch/roll ({ypr}){std}")
+    if args.loss is not None:
+        rejected = d["rejected_sightings"]
+        count = len(rejected) or "none"
+        print(f"Rejected sightings ({args.loss} loss, outliers left out): {count}")
+        for r in rejected:
+            what = "overhead camera C" if r["kind"] == "overhead" else r["observer"]
+            print(f"  step {r['step']}: {what} seeing {r['target']} ({r['kind']})")
     for note in d["notes"]:
         print(f"  note: {note}")
     write_report(out, d, quiet=args.quiet)
@@ -343,4 +361,11 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
                    "written also when the status is not successful (exit code 1)")
     p.add_argument("--no-refine", action="store_true",
                    help="closed form only (no joint refinement, no covariances)")  # fmt: skip
+    p.add_argument("--loss", choices=("huber", "cauchy"), default=None,
+                   help="robust refinement: sightings that do not fit the others (a "
+                   "distractor taken for a marker) are left out, printed and written "
+                   "as rejected_sightings (default: plain least squares)")  # fmt: skip
+    p.add_argument("--loss-scale", type=float, default=None, metavar="SIGMAS",
+                   help="the robust loss's scale in standard deviations of a sighting's "
+                   "whitened residual (default 1.345 huber, 2.3849 cauchy)")  # fmt: skip
     p.set_defaults(func=_cmd_localize)

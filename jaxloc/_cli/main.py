@@ -97,12 +97,12 @@ def _enable_compile_cache() -> str | None:
 
 
 def _methods(args) -> tuple[str, ...]:
-    from .._study.trial import METHODS
+    from .._study.trial import ALL_METHODS, METHODS
 
     methods = tuple(args.methods.split(",")) if args.methods else METHODS
-    if not methods or any(m not in METHODS for m in methods):
+    if not methods or any(m not in ALL_METHODS for m in methods):
         raise ValueError(
-            f"--methods must be a comma-separated subset of {METHODS}; got {args.methods!r}."
+            f"--methods must be a comma-separated subset of {ALL_METHODS}; got {args.methods!r}."
         )
     return methods
 
@@ -397,16 +397,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _method_help() -> str:
-    from .._study.trial import METHODS
+    from .._study.trial import ALL_METHODS, METHODS
 
     what = {
         "paper": "the paper's closed form, its linear Eq. 6 for the overhead camera",
         "robust": "jaxloc's closed form, planar-safe P3P for the overhead camera",
         "refined": "joint maximum-likelihood refinement of the whole cycle, from robust",
+        "robust-refined": "the refinement with the Huber loss and outlier rejection",
     }
-    choices = "; ".join(f"{m}: {what.get(m, m)}" for m in METHODS)
+    choices = "; ".join(f"{m}: {what.get(m, m)}" for m in ALL_METHODS)
     return (f"comma-separated estimators to compare on the same observations, any of "
-            f"{', '.join(METHODS)} ({choices}); default: {','.join(METHODS)}")  # fmt: skip
+            f"{', '.join(ALL_METHODS)} ({choices}); default: {','.join(METHODS)}")  # fmt: skip
 
 
 def _study_options(p: argparse.ArgumentParser, studies: int) -> None:

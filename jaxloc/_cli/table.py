@@ -22,6 +22,7 @@ METHOD_LABELS = {
     "paper": "paper Eq. 6",
     "robust": "jaxloc robust",
     "refined": "jaxloc refined (ML)",
+    "robust-refined": "jaxloc refined (Huber, outliers out)",
 }
 # Row groups of the table: title, summary key, scale to the printed unit, the paper's key
 # and the Cramér–Rao key (None: no such column).
@@ -168,6 +169,8 @@ _STYLES = {
                    markersize=3.5, markevery=0.1),
     "refined": dict(color="tab:green", linestyle="-.", linewidth=1.6, marker="s",
                     markersize=3.5, markevery=(0.05, 0.1)),
+    "robust-refined": dict(color="tab:red", linestyle=":", linewidth=1.6, marker="^",
+                           markersize=3.5, markevery=(0.02, 0.1)),
 }
 _BOUND_STYLE = dict(color="black", linestyle=":", linewidth=2.0)
 # Panel rows of a strategy: title, study key of the methods' errors, of the bound's draws,

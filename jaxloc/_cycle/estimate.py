@@ -8,10 +8,11 @@ code branches on travels through the `stats` dict of diagnostics.
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.results import RESULTS
-from .layout import first_sighting
+from .layout import CAMERAS, first_sighting
 from .observations import CyclePoses
 
 
@@ -100,6 +101,20 @@ def start_placements(starts: CycleStarts, scales, strategy: str, T0_place):
     return T_place, jnp.where(active[:, None], T_over, ident[None]), active
 
 
+class RejectedSightings(eqx.Module):
+    """The sightings a robust refinement ([`jaxloc.refine_cycle`][] with a `loss`) left
+    out as outliers.
+
+    **Fields:** `mutual` `(steps, 3, 3)` bool, `[k, i, j]`: ground robot `i`'s sighting of
+    robot `j` at step `k` (robots 0, 1, 2 = C1, C2, C3; the diagonal is False);
+    `overhead` `(steps, 3)` bool, `[k, j]`: the overhead camera C's sighting of robot `j`
+    at step `k`. List them with [`jaxloc.rejected_sightings`][].
+    """
+
+    mutual: Bool[Array, "steps 3 3"]
+    overhead: Bool[Array, "steps 3"]
+
+
 class CycleEstimate(eqx.Module):
     """Estimated poses of one localization cycle.
 
@@ -122,6 +137,8 @@ class CycleEstimate(eqx.Module):
       observability gate inverted; zeros where not positive definite).
     - `alternatives`: a [`jaxloc.CycleStarts`][] (the concurrent strategy's closed form with the
       robust overhead solver) or `None`.
+    - `rejected`: a [`jaxloc.RejectedSightings`][] (a refinement with a robust `loss`: the
+      sightings left out as outliers) or `None`.
     """
 
     poses: CyclePoses
@@ -131,6 +148,7 @@ class CycleEstimate(eqx.Module):
     checks: FitCheck
     covariance: CycleCovariance
     alternatives: CycleStarts | None = None
+    rejected: RejectedSightings | None = None
 
     @classmethod
     def from_poses(
@@ -154,3 +172,30 @@ class CycleEstimate(eqx.Module):
         )
         scales = jnp.ones(T.shape[:-3] + (steps,), dtype) if scales is None else scales
         return cls(poses, scales, result, {}, checks, covariance)
+
+
+def rejected_sightings(estimate: CycleEstimate) -> list[tuple[str, int, str, str]]:
+    """The sightings a robust refinement rejected, for people: a list of `(kind, step,
+    observer, target)`, `kind` `"mutual"` (a ground robot's sighting of another) or
+    `"overhead"` (the overhead camera's sighting of a ground robot), `step` the cycle's
+    step (int), `observer` and `target` robot names of `jaxloc.CAMERAS` (`"C"`, `"C1"`,
+    ...). Empty when `estimate.rejected` is `None` (no robust loss) or nothing was
+    rejected. One estimate (not a batch); eager (reads the arrays).
+
+    **Arguments:** `estimate`, a [`jaxloc.CycleEstimate`][].
+
+    **Returns:** the list, mutual sightings first, each kind ordered by step, observer,
+    target.
+    """
+    rejected = estimate.rejected
+    if rejected is None:
+        return []
+    mutual, overhead = np.asarray(rejected.mutual), np.asarray(rejected.overhead)
+    if mutual.ndim != 3 or overhead.ndim != 2:
+        raise ValueError(
+            "`rejected_sightings` lists one estimate's sightings; got a batch of shape "
+            f"{mutual.shape[:-3]} (index it first, e.g. `jax.tree.map(lambda x: x[0], est)`)."
+        )
+    out = [("mutual", int(k), CAMERAS[i + 1], CAMERAS[j + 1]) for k, i, j in np.argwhere(mutual)]
+    out += [("overhead", int(k), "C", CAMERAS[j + 1]) for k, j in np.argwhere(overhead)]
+    return out

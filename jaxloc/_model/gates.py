@@ -45,6 +45,15 @@ from .measurements import CycleData, normal_equations, unpack, whitened
 #: Quantile of the chi-square gate's threshold.
 CHI2_QUANTILE = 0.999
 _Z_999 = 3.0902  # standard normal quantile of CHI2_QUANTILE
+#: Squared whitened norm of one pixel sighting (its two residuals) above which a robust
+#: refinement rejects it as an outlier ([`jaxloc.refine_cycle`][] with a `loss`): the
+#: `CHI2_QUANTILE` quantile of one sighting's squared norm under the rig's noise model.
+#: "gaussian": chi-square(2), `-2 ln(1 - 0.999)` = 13.8155 (norm 3.72 sigma); "paper"
+#: (radius ~ N(0, sigma), uniform direction, per-axis sigma `sigma / sqrt(2)`): `2
+#: chi-square(1)`, `2 x 3.2905^2` = 21.6551 (norm 4.65). At a fit the residuals are
+#: smaller than the noise (by the leverage of the sightings), so clean sightings are
+#: rejected at a rate below 0.1% each.
+SIGHTING_LIMIT = {"gaussian": 13.8155, "paper": 21.6551}
 #: Largest position bound (RMSE, m) of an end-of-cycle pose, relative to the formation's
 #: size, for the pose to count as observable: a pose whose uncertainty is as large as the
 #: formation is not known. The paper's formation (size ~0.9 m) has bounds of 1-15 cm

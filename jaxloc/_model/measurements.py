@@ -30,6 +30,7 @@ from jaxtyping import Array, Bool, Float
 from .._core.least_squares import NormalEquations
 from .._core.numerics import safe_norm
 from .._core.poses import rplus
+from .._core.robust import RobustLoss
 from .._cycle.layout import move_start_step, moving_robot, placement_ids
 from .._cycle.observations import CycleObservations, ODOMETRY_SIGMA_FLOOR
 from .._cycle.rig import ground_cameras_apply, PIXEL_SIGMA_FLOOR, Rig
@@ -272,6 +273,51 @@ def whitened(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
     return jnp.concatenate([r_m.reshape(-1), r_o.reshape(-1), r_d])
 
 
+def sighting_squares(
+    r: Float[Array, " m"], steps: int
+) -> tuple[Float[Array, "steps 6"], Float[Array, "steps 3"]]:
+    """Squared whitened norm of each pixel sighting (its two rows of [`whitened`][]):
+    `(mutual (steps, 6 ordered pairs OBSERVER, TARGET), overhead (steps, 3))`; 0 for an
+    unused sighting."""
+    n_m, n_o = 12 * steps, 6 * steps
+    s_m = jnp.sum(r[:n_m].reshape(steps, 6, 2) ** 2, axis=-1)
+    s_o = jnp.sum(r[n_m : n_m + n_o].reshape(steps, 3, 2) ** 2, axis=-1)
+    return s_m, s_o
+
+
+def robust_weights(r: Float[Array, " m"], steps: int, loss: RobustLoss):
+    """The robust cost `sum rho(s_i) + odometry^2` of whitened residuals `r` and the
+    square root of each row's weight `rho'(s_i)` (1 for the odometry rows, which stay
+    plain least squares)."""
+    s_m, s_o = sighting_squares(r, steps)
+    s = jnp.concatenate([s_m.reshape(-1), s_o.reshape(-1)])
+    n = s.shape[0]
+    cost = jnp.sum(loss.rho(s)) + jnp.sum(r[2 * n :] ** 2)
+    w = jnp.repeat(jnp.sqrt(loss.weight(s)), 2)
+    return cost, jnp.concatenate([w, jnp.ones(r.shape[0] - 2 * n, r.dtype)])
+
+
+def whitened_cost(T_place, T_over, data: CycleData, rig: Rig, strategy: str,
+                  loss: RobustLoss | None = None):  # fmt: skip
+    """The cost the refinement minimises: `r^T r` of [`whitened`][], or with a robust
+    `loss` `sum rho(s_i)` over the pixel sightings plus the odometry's squares."""
+    r = whitened(T_place, T_over, data, rig, strategy)
+    if loss is None:
+        return jnp.sum(r * r)
+    return robust_weights(r, data.mutual_pixels.shape[0], loss)[0]
+
+
+def without(data: CycleData, mutual: Bool[Array, "steps 3 3"],
+            overhead: Bool[Array, "steps 3"]) -> CycleData:  # fmt: skip
+    """`data` with the sightings marked in `mutual` and `overhead` left out (weight 0,
+    as missing data: they count in no sum and no degree of freedom)."""
+    weights = (
+        jnp.where(mutual, 0.0, data.mutual_weight),
+        jnp.where(overhead, 0.0, data.overhead_weight),
+    )
+    return eqx.tree_at(lambda d: (d.mutual_weight, d.overhead_weight), data, weights)
+
+
 def whitened_blocks(
     T_place: Float[Array, "placements 7"],
     T_over: Float[Array, "7"],
@@ -398,16 +444,26 @@ def normal_equations(
     data: CycleData,
     rig: Rig,
     strategy: str,
+    loss: RobustLoss | None = None,
 ) -> NormalEquations:
     """The cost `r^T r`, `H = J^T J` and `g = J^T r` of the whitened residuals with
     respect to the tangent of [`unpack`][] (placements 1, 2, ... then the overhead camera;
     placement 0 is the gauge), without a dense Jacobian.
+
+    With a robust `loss` (`jaxloc._core.robust`), the cost is `sum rho(s_i)` over the
+    pixel sightings (plus the odometry's squares) and each sighting's two rows are
+    weighed by `rho'(s_i)` in `H` and `g`: one step of iteratively reweighted least
+    squares, whose `g` is the exact half-gradient of that cost.
 
     Each row touches two poses ([`whitened_blocks`][]): its three `6 x 6` products go to
     two diagonal blocks and one off-diagonal block of `H`, summed over static runs of
     rows (slices, no gathers), about a tenth of the products of `J^T J` with a dense `J`.
     """
     r, B = whitened_blocks(T_place, T_over, data, rig, strategy)
+    cost = jnp.sum(r * r)
+    if loss is not None:
+        cost, sqrt_w = robust_weights(r, data.mutual_pixels.shape[0], loss)
+        r, B = r * sqrt_w, B * sqrt_w[:, None, None]
     plan = _normal_plan(strategy)
     dtype = r.dtype
     a, b = B[:, 0], B[:, 1]
@@ -429,4 +485,4 @@ def normal_equations(
                 block = block + (part.T if transposed else part)
         H[u][v], H[v][u] = block, block.T
     H = jnp.concatenate([jnp.concatenate(row, axis=1) for row in H], axis=0)
-    return NormalEquations(jnp.sum(r * r), H, jnp.concatenate(g))
+    return NormalEquations(cost, H, jnp.concatenate(g))

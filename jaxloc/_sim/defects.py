@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
-from jaxtyping import Array, Int, PRNGKeyArray
+from jaxtyping import Array, Bool, Int, PRNGKeyArray
 
 from .._cycle.observations import CycleObservations
 from .._cycle.rig import ground_cameras_apply, Rig
@@ -96,9 +96,46 @@ def _outlier(observations, rig, masks, key):
     radius = jr.uniform(k_r, (), dtype, 30.0, 100.0)
     angle = jr.uniform(k_a, (), dtype, 0.0, 2.0 * np.pi)
     offset = radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)])
+    return _moved(observations, rig, masks, (offset, offset))
+
+
+def add_outliers(
+    observations: CycleObservations,
+    rig: Rig,
+    mutual: Bool[Array, "steps 3 3"],
+    overhead: Bool[Array, "steps 3"],
+    *,
+    key: PRNGKeyArray,
+) -> CycleObservations:
+    """`observations` with every marked sighting an outlier: its pixel moved 30-100 px
+    (uniform) in a uniform direction, each independently, and its bearing unprojected
+    through the rig's camera to match (a detection on a distractor). For robustness
+    studies of [`jaxloc.refine_cycle`][]'s robust loss; [`jaxloc.corrupt_observations`][]
+    makes one such outlier.
+
+    **Arguments:** `observations`, `rig` (the cameras the pixels were taken with),
+    `mutual` `(steps, 3, 3)` and `overhead` `(steps, 3)` bool masks of the sightings to
+    move (`[k, i, j]`: robot `i` sees robot `j` at step `k`; `[k, j]`: C sees robot `j`),
+    `key` (keyword only).
+    """
+    k_r, k_a = jr.split(key)
+    dtype = observations.mutual_pixels.dtype
+    steps = observations.mutual_pixels.shape[0]
+    n = 12 * steps
+    radius = jr.uniform(k_r, (n,), dtype, 30.0, 100.0)
+    angle = jr.uniform(k_a, (n,), dtype, 0.0, 2.0 * np.pi)
+    offset = radius[:, None] * jnp.stack([jnp.cos(angle), jnp.sin(angle)], axis=-1)
+    m_off = offset[: 9 * steps].reshape(steps, 3, 3, 2)
+    o_off = offset[9 * steps :].reshape(steps, 3, 2)
+    return _moved(observations, rig, (mutual, overhead), (m_off, o_off))
+
+
+def _moved(observations, rig, masks, offsets):
+    """Observations with the masked sightings' pixels moved by `offsets` (broadcast to the
+    pixels) and their bearings unprojected to match."""
     m, o = masks
-    mutual_px = observations.mutual_pixels + jnp.where(m[..., None], offset, 0.0)
-    overhead_px = observations.overhead_pixels + jnp.where(o[..., None], offset, 0.0)
+    mutual_px = observations.mutual_pixels + jnp.where(m[..., None], offsets[0], 0.0)
+    overhead_px = observations.overhead_pixels + jnp.where(o[..., None], offsets[1], 0.0)
     mutual, overhead = _unproject_all(observations, rig, mutual_px, overhead_px)
     mutual = jnp.where(m[..., None], mutual, observations.mutual)
     overhead = jnp.where(o[..., None], overhead, observations.overhead)

@@ -38,7 +38,7 @@ from .chunks import (
     write_chunk,
 )
 from .stats import StreamingSummary
-from .trial import METHODS, run_trial, TrialErrors
+from .trial import ALL_METHODS, METHODS, run_trial, TrialErrors
 
 
 FIELDS = (
@@ -227,9 +227,11 @@ def _check_study_args(n_trials, chunk_size, methods, seed) -> tuple[str, ...]:
         raise ValueError(f"`n_trials` must be a positive integer; got {n_trials!r}.")
     if not isinstance(chunk_size, int) or chunk_size <= 0:
         raise ValueError(f"`chunk_size` must be a positive integer; got {chunk_size!r}.")
-    unknown = [m for m in methods if m not in METHODS]
+    unknown = [m for m in methods if m not in ALL_METHODS]
     if unknown or not methods:
-        raise ValueError(f"`methods` must be a non-empty subset of {METHODS}; got {methods!r}.")
+        raise ValueError(
+            f"`methods` must be a non-empty subset of {ALL_METHODS}; got {methods!r}."
+        )
     check_seed(seed)
     return tuple(methods)
 

@@ -11,22 +11,31 @@ from .._core.linalg import adjugate3, psd_cholesky3
 from .._core.numerics import safe_norm
 from .._core.poses import compose, inverse, rotation_error, ypr_from_rotation
 from .._core.results import RESULTS, status_code
+from .._core.robust import robust_loss
 from .._cycle.observations import CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import crlb_inputs
 from .._model.gates import end_poses, gate_all, gate_point, gate_rivals, gated, GatePoint
 from .._model.measurements import cycle_data
-from .._refine.cycle import finish_refinement, refine_solution
+from .._refine.cycle import finish_refinement, refine_solution, refined_data
 from .._sim.scenario import Scenario
 from .._sim.simulate import simulate_cycle
 from .._solvers.localize import closed_forms
 
 
 METHODS = ("paper", "robust", "refined")
-"""Estimators a study can compare. "paper": the paper's closed form with its linear Eq. 6
-for the overhead camera; "robust": the same chain with jaxloc's planar-safe P3P-based
-overhead pose; "refined": joint maximum-likelihood refinement of the whole cycle
-started from "robust"."""
+"""Estimators a study compares by default. "paper": the paper's closed form with its
+linear Eq. 6 for the overhead camera; "robust": the same chain with jaxloc's
+planar-safe P3P-based overhead pose; "refined": joint maximum-likelihood refinement of
+the whole cycle started from "robust". A study may also ask for "robust-refined" (see
+`ALL_METHODS`)."""
+#: The refinements a study can run, by method name, with their robust loss (`None`:
+#: plain least squares; see [`jaxloc.refine_cycle`][]).
+REFINEMENTS = {"refined": None, "robust-refined": "huber"}
+ALL_METHODS = METHODS + ("robust-refined",)
+"""Every estimator a study can compare: `METHODS` and "robust-refined", the refinement
+with the Huber loss and outlier rejection (`refine_cycle(..., loss="huber")`), for
+studies of corrupted observations."""
 #: Levenberg–Marquardt iteration cap of the "refined" method in studies. Under `vmap` a
 #: batch runs as many steps as its slowest trial, so a long tail of rare stragglers would
 #: set the cost of every chunk; trials that hit the cap are reported as
@@ -134,24 +143,27 @@ def estimate_all(
     **Returns:** `(estimates, bound)`: the estimates in the order of `methods`, and the
     bound's [`jaxloc.CycleCovariance`][] (`None` without `truth`)."""
     strategy = observations.strategy
-    closed_methods = tuple(m for m in methods if m != "refined")
-    if "refined" in methods and "robust" not in closed_methods:
+    refinements = [m for m in methods if m in REFINEMENTS]
+    closed_methods = tuple(m for m in methods if m not in REFINEMENTS)
+    if refinements and "robust" not in closed_methods:
         closed_methods = closed_methods + ("robust",)
     estimates = dict(zip(closed_methods, closed_forms(observations, closed_methods)))
-    runner_up = None
-    if "refined" in methods:
-        estimates["refined"], runner_up = refine_solution(
+    runner_up = {}
+    for m in refinements:
+        estimates[m], runner_up[m] = refine_solution(
             observations, rig, estimates["robust"], solver="lm", max_steps=REFINE_MAX_STEPS,
-            rtol=1e-6, atol=1e-6,
+            rtol=1e-6, atol=1e-6, loss=robust_loss(REFINEMENTS[m], None),
         )  # fmt: skip
     data = cycle_data(observations, rig)
-    closed = [m for m in estimates if m != "refined"]
+    closed = [m for m in estimates if m not in REFINEMENTS]
     points = [gate_point(estimates[m], data, strategy) for m in closed]
     rivals = [gate_rivals(estimates[m], p, strategy) for m, p in zip(closed, points)]
     for name, gate in zip(closed, gate_all(points, rig, strategy, polish=True, rivals=rivals)):
         estimates[name] = gated(estimates[name], gate)
     # A converged refinement and the true poses are gated where they are.
-    points = [gate_point(estimates["refined"], data, strategy)] if runner_up is not None else []
+    points = [
+        gate_point(estimates[m], refined_data(data, estimates[m]), strategy) for m in refinements
+    ]
     if truth is not None:
         present = (observations.mutual_visible, observations.overhead_visible)
         T_place, T_over, bound_data = crlb_inputs(
@@ -160,8 +172,8 @@ def estimate_all(
         final = end_poses(T_place, T_over, strategy)
         points.append(GatePoint(T_place, T_over, final, bound_data, RESULTS.successful))
     gates = gate_all(points, rig, strategy, polish=False) if points else []
-    if runner_up is not None:
-        estimates["refined"] = finish_refinement(estimates["refined"], runner_up, gates[0])
+    for i, m in enumerate(refinements):
+        estimates[m] = finish_refinement(estimates[m], runner_up[m], gates[i])
     bound = gates[-1][2] if truth is not None else None
     return [estimates[m] for m in methods], bound
 
@@ -206,7 +218,7 @@ def run_trial(
         odometry_sigma_rel=scenario.odometry_sigma_rel,
     )  # fmt: skip
     for method, estimate in zip(methods, estimates):
-        solver = estimate.result if method == "refined" else estimate.checks.solver_result
+        solver = estimate.result if method in REFINEMENTS else estimate.checks.solver_result
         status = RESULTS.where(all_visible, solver, RESULTS.not_visible)
         gated = RESULTS.where(all_visible, estimate.result, RESULTS.not_visible)
         pos, rot, ypr, diff = score(estimate.poses, truth.poses, rig)

@@ -34,6 +34,8 @@ from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
 from .._core.files import atomic_write_json
 from .._core.poses import ypr_from_rotation
 from .._core.results import RESULTS, status_code, status_names
+from .._core.robust import robust_loss
+from .._cycle.estimate import rejected_sightings
 from .._cycle.layout import num_steps, placement_ids
 from .._cycle.observations import CycleObservations
 from .._cycle.rig import mount_pose, Rig
@@ -224,7 +226,9 @@ class ImageLocalization:
     **Fields:** `estimate` (the [`jaxloc.CycleEstimate`][] reported: refined if
     refinement ran and succeeded), `closed_form` (the closed-form estimate),
     `covariance` (a [`jaxloc.CycleCovariance`][] or `None`), `observations`,
-    `detections`, `method` (`"refined"` or `"closed_form"`), `notes`.
+    `detections`, `method` (`"refined"` or `"closed_form"`), `notes`, `rejected`: the
+    sightings a robust refinement left out as outliers, `(kind, step, observer,
+    target)` as [`jaxloc.rejected_sightings`][] lists them (empty without a `loss`).
     """
 
     estimate: Any
@@ -234,6 +238,7 @@ class ImageLocalization:
     detections: dict[tuple[int, str], dict[str, MarkerDetection]]
     method: str
     notes: list[str]
+    rejected: list[tuple[str, int, str, str]] = dataclasses.field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready report: the four end-of-cycle poses (position m, quaternion wxyz,
@@ -276,6 +281,10 @@ class ImageLocalization:
             "positions_m": {r: Tb[:, i, 4:].tolist() for i, r in enumerate(GROUND)},
             "stats": {k: np.asarray(v).tolist() for k, v in self.estimate.stats.items()},
             "detections": dets,
+            "rejected_sightings": [
+                {"kind": kind, "step": step, "observer": observer, "target": target}
+                for kind, step, observer, target in self.rejected
+            ],
             "notes": self.notes,
         }
 
@@ -286,6 +295,8 @@ def localize_images(
     *,
     refine: bool = True,
     covariance: bool = True,
+    loss: str | None = None,
+    loss_scale: float | None = None,
 ) -> ImageLocalization:
     r"""Poses of the whole team from one cycle's images.
 
@@ -299,6 +310,11 @@ def localize_images(
     - `team`: a [`jaxloc.Team`][] (e.g. [`jaxloc.load_team`][]).
     - `images`: optional `{(step, robot): BGR image}`; default: `team.steps`' files.
     - `refine`, `covariance`: run the refinement / the covariance. Keyword only.
+    - `loss`, `loss_scale`: the refinement's robust loss (`"huber"` or `"cauchy"`) and
+      its scale, as in [`jaxloc.refine_cycle`][]: a detection that does not fit the
+      others (a distractor taken for a marker) is left out and named in `rejected`.
+      Default `None`: plain least squares, where such a detection makes the fit
+      `inconsistent_fit`. Keyword only.
 
     **Returns:** an [`jaxloc.ImageLocalization`][]. Raises `ValueError` if detection fails
     (see [`jaxloc.detect_team_images`][]) or the closed-form estimate fails (its status is
@@ -308,6 +324,7 @@ def localize_images(
     reported and `notes` says so. If the refinement fails otherwise (e.g. iteration
     limit), the closed-form estimate is reported and the reason recorded in `notes`.
     """
+    robust_loss(loss, loss_scale)  # the arguments' errors before any image is read
     detections = detect_team_images(team, images)
     observations = observations_from_detections(team, detections)
     rig = rig_for(team)
@@ -317,8 +334,9 @@ def localize_images(
         _fail(team, closed, "the closed-form estimate")
     if not refine:
         return ImageLocalization(closed, closed, None, observations, detections, "closed_form", [])
-    refined = refine_cycle(observations, rig, closed, throw=False)
+    refined = refine_cycle(observations, rig, closed, loss=loss, loss_scale=loss_scale, throw=False)
     notes: list[str] = []
+    rejected = rejected_sightings(refined)
     if bool(refined.result == RESULTS.ambiguous):
         notes.append(
             f"Ambiguous: another pose, more than 10 cm away, fits the images almost as "
@@ -340,7 +358,9 @@ def localize_images(
     cov = refined.covariance if covariance else None
     if cov is not None and not bool(cov.ok):
         notes.append("The covariance is not available (singular information matrix).")
-    return ImageLocalization(refined, closed, cov, observations, detections, "refined", notes)
+    return ImageLocalization(
+        refined, closed, cov, observations, detections, "refined", notes, rejected
+    )
 
 
 def _fail(team: Team, estimate, what: str):

@@ -1,0 +1,187 @@
+"""Robust joint refinement against outliers: RMSE of C against the clean cycles' CRLB.
+
+    python benchmarks/robust_refine.py [--cycles 10000] [--batch 500] [--seed 0]
+        [--loss huber] [--loss-scale S] [--strategy sequential] [--out FILE]
+
+The paper's scenario (`jaxloc.Scenario.paper(strategy)`, 2 px paper noise), two seeded
+studies of `--cycles` cycles each (issue 20's targets):
+
+- `one-in-10%`: in 10% of the cycles one sighting (uniform over the mutual and overhead
+  sightings) is an outlier, moved 30-100 px (`jaxloc.add_outliers`);
+- `5%-of-sightings`: every sighting independently an outlier with probability 5%.
+
+Each cycle: `jaxloc.localize_cycle` (closed form), then `jaxloc.refine_cycle` plain and
+with the robust `--loss`. Reported: the refined RMSE of C's position over the successful
+cycles against the CRLB of the clean cycle (`jaxloc.cycle_crlb` at the truth with every
+sighting, the RMS of the bound's standard deviation over the same cycles), its ratio
+(targets: <= 1.1 for one-in-10%, <= 1.3 for 5%-of-sightings), the fraction of outliers
+named (`rejected`; target >= 95% in one-in-10%), the clean sightings rejected, and the
+statuses. Writes JSON (strict, NaN as null).
+"""
+
+import argparse
+import functools as ft
+import time
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import jax.random as jr  # noqa: E402
+import jaxloc  # noqa: E402
+import numpy as np  # noqa: E402
+from jaxloc._core.files import dumps_json  # noqa: E402
+from jaxloc._core.robust import DEFAULT_LOSS_SCALE  # noqa: E402
+from jaxloc._sim.defects import _sighting_mask  # noqa: E402
+
+
+STUDIES = {"one-in-10%": 0.10, "5%-of-sightings": 0.05}
+
+
+def _outlier_masks(study, obs, key):
+    k_pick, k_apply, k_o = jr.split(key, 3)
+    steps = obs.mutual.shape[0]
+    off = ~jnp.eye(3, dtype=bool)[None]
+    if study == "one-in-10%":
+        m, o = _sighting_mask(obs, k_pick)
+        hit = jr.uniform(k_apply) < STUDIES[study]
+        return m & hit, o & hit
+    m = jr.bernoulli(k_pick, STUDIES[study], (steps, 3, 3)) & off
+    return m, jr.bernoulli(k_o, STUDIES[study], (steps, 3)) & obs.overhead_visible
+
+
+@ft.partial(jax.jit, static_argnames=("strategy", "study", "loss"))
+def _batch(keys, loss_scale, *, strategy, study, loss):
+    sc = jaxloc.Scenario.paper(strategy)
+    rig = sc.rig
+
+    def one(key):
+        k_sim, k_mask, k_out = jr.split(key, 3)
+        truth, obs, visible = jaxloc.simulate_cycle(sc, k_sim)
+        m, o = _outlier_masks(study, obs, k_mask)
+        bad = jaxloc.add_outliers(obs, rig, m, o, key=k_out)
+        est = jaxloc.localize_cycle(bad, rig, throw=False)
+        plain = jaxloc.refine_cycle(bad, rig, est, throw=False)
+        robust = jaxloc.refine_cycle(bad, rig, est, loss=loss, loss_scale=loss_scale, throw=False)
+        bound = jaxloc.cycle_crlb(rig, truth.poses, odometry_sigma_rel=sc.odometry_sigma_rel)
+        c_true = truth.poses.T_world_overhead.wxyz_xyz[4:]
+
+        def c_error(e):
+            return jnp.linalg.norm(e.poses.T_world_overhead.wxyz_xyz[4:] - c_true)
+
+        rej = robust.rejected
+        return {
+            "visible": visible,
+            "closed": jaxloc.status_code(est.result),
+            "plain": jaxloc.status_code(plain.result),
+            "robust": jaxloc.status_code(robust.result),
+            "plain_error": c_error(plain),
+            "robust_error": c_error(robust),
+            "crlb_var": jnp.trace(bound.position[0]),
+            "outliers": jnp.sum(m) + jnp.sum(o),
+            "named": jnp.sum(rej.mutual & m) + jnp.sum(rej.overhead & o),
+            "false": jnp.sum(rej.mutual & ~m) + jnp.sum(rej.overhead & ~o),
+            "sightings": jnp.sum(obs.overhead_visible) + 6 * obs.mutual.shape[0],
+            "num_steps": robust.stats["num_steps"],
+        }
+
+    return jax.vmap(one)(keys)
+
+
+def _summary(out, names):
+    vis = out["visible"]
+    corrupted = vis & (out["outliers"] > 0)
+    row = {"cycles": int(vis.size), "visible": int(vis.sum()), "corrupted": int(corrupted.sum())}
+    for stage in ("plain", "robust"):
+        ok = vis & (out[stage] == 0)
+        rmse = float(np.sqrt(np.mean(out[f"{stage}_error"][ok] ** 2)))
+        bound = float(np.sqrt(np.mean(out["crlb_var"][ok])))
+        ok_c = ok & corrupted
+        row[stage] = {
+            "successful": int(ok.sum()),
+            "rmse_C_m": rmse,
+            "crlb_C_m": bound,
+            "ratio": rmse / bound,
+            "corrupted_successful": int(ok_c.sum()),
+            "corrupted_ratio": float(
+                np.sqrt(np.mean(out[f"{stage}_error"][ok_c] ** 2) / np.mean(out["crlb_var"][ok_c]))
+            )
+            if ok_c.any()
+            else None,
+            "status": {
+                names[int(c)]: int(n)
+                for c, n in zip(*np.unique(out[stage][vis], return_counts=True))
+            },
+        }
+    n_out = int(out["outliers"][vis].sum())
+    row["outliers"] = n_out
+    row["named"] = int(out["named"][vis].sum())
+    row["named_fraction"] = row["named"] / max(n_out, 1)
+    clean = int((out["sightings"][vis] - out["outliers"][vis]).sum())
+    row["clean_rejected"] = int(out["false"][vis].sum())
+    row["clean_rejected_rate"] = row["clean_rejected"] / max(clean, 1)
+    steps = out["num_steps"][vis]
+    row["robust_steps_median_p99_max"] = [
+        float(np.median(steps)), float(np.percentile(steps, 99)), int(steps.max())
+    ]  # fmt: skip
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--cycles", type=int, default=10_000)
+    parser.add_argument("--batch", type=int, default=500)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--loss", default="huber", choices=("huber", "cauchy"))
+    parser.add_argument("--loss-scale", type=float, default=None)
+    parser.add_argument("--strategy", default="sequential", choices=("sequential", "concurrent"))
+    parser.add_argument("--studies", default=",".join(STUDIES))
+    parser.add_argument("--out", default="benchmarks/results/robust_refine.json")
+    args = parser.parse_args()
+    scale = DEFAULT_LOSS_SCALE[args.loss] if args.loss_scale is None else args.loss_scale
+    names = jaxloc.status_names()
+    rows = {}
+    for s_index, study in enumerate(args.studies.split(",")):
+        t0 = time.perf_counter()
+        parts = []
+        for start in range(0, args.cycles, args.batch):
+            idx = np.arange(start, start + args.batch)
+            keys = jax.vmap(lambda i: jr.fold_in(jr.key(args.seed), i))(
+                jnp.asarray(idx) + s_index * 10**9
+            )
+            out = _batch(
+                keys, jnp.asarray(scale), strategy=args.strategy, study=study, loss=args.loss
+            )
+            parts.append(jax.tree.map(np.asarray, out))
+            done = start + args.batch
+            rate = done / (time.perf_counter() - t0)
+            print(f"{study}: {done} cycles, {rate:.0f} cycles/s", flush=True)
+        out = {k: np.concatenate([p[k] for p in parts])[: args.cycles] for k in parts[0]}
+        rows[study] = _summary(out, names)
+        rows[study]["seconds"] = time.perf_counter() - t0
+        r = rows[study]
+        print(
+            f"\n{study} ({args.strategy}, {args.loss} {scale}): {r['visible']} visible cycles, "
+            f"{r['corrupted']} corrupted, {r['outliers']} outliers, "
+            f"{100 * r['named_fraction']:.1f}% named, clean sightings rejected "
+            f"{100 * r['clean_rejected_rate']:.3f}%"
+        )
+        for stage in ("plain", "robust"):
+            st = r[stage]
+            print(
+                f"  {stage:<7} successful {st['successful']:>6}  "
+                f"RMSE(C) {100 * st['rmse_C_m']:.2f} cm  CRLB {100 * st['crlb_C_m']:.2f} cm  "
+                f"ratio {st['ratio']:.3f}  (corrupted cycles: {st['corrupted_successful']} ok, "
+                f"ratio {st['corrupted_ratio']})"
+            )
+            print(f"          status {st['status']}")
+        print(f"  robust steps median/p99/max {r['robust_steps_median_p99_max']}\n", flush=True)
+    with open(args.out, "w") as f:
+        f.write(dumps_json({"command": "python benchmarks/robust_refine.py", "args": vars(args),
+                            "loss_scale": scale, "studies": rows}))  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
