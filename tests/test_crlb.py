@@ -252,6 +252,20 @@ def test_batched_lm_gradient_is_implicit():
         np.testing.assert_allclose(grad[k, j, a], fd, rtol=1e-3, atol=1e-7)
 
 
+def test_kernel_as_optimistix_solver_takes_the_kernels_steps():
+    """jaxloc's kernel driven by `optx.least_squares` (`solver="optx-kernel"`) takes the
+    same steps as the kernel itself (`"lm"`, one start): the same solution to rounding,
+    and its gradient through optimistix's implicit adjoint equals the kernel's
+    implicit step."""
+    px, refined = _fixed_cycle()
+    runs = {s: jax.jit(ft.partial(refined, solver=s)) for s in ("lm", "optx-kernel")}
+    (c_lm, r_lm), (c_kernel, r_kernel) = (runs[s](px) for s in ("lm", "optx-kernel"))
+    assert int(r_lm) == 0 and int(r_kernel) == 0
+    np.testing.assert_allclose(c_kernel, c_lm, atol=1e-12)
+    grads = [jax.jit(jax.grad(lambda p, f=f: f(p)[0][2]))(px) for f in runs.values()]
+    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-8, atol=1e-12)
+
+
 @pytest.mark.slow
 def test_batched_lm_reaches_optimistix_minimum():
     px, refined = _fixed_cycle()
@@ -281,6 +295,7 @@ def test_vmapped_gradient_of_refinement_agrees_between_solvers():
         jax.jit(jax.grad(lambda xy: jnp.sum(jax.vmap(lambda k: loss(xy, k, solver))(keys))))(
             jnp.zeros(2)
         )
-        for solver in ("lm", "optx-lm")
+        for solver in ("lm", "optx-kernel", "optx-lm")
     ]
-    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-5)
+    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-8)
+    np.testing.assert_allclose(grads[2], grads[0], rtol=1e-5)

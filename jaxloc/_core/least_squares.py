@@ -128,33 +128,28 @@ def lm_start(
     )  # fmt: skip
 
 
-def lm_continue(
+def lm_iteration(
     model: Callable[[PyTree], NormalEquations],
     retract: Callable[[PyTree, Array], PyTree],
     scale: Callable[[PyTree], Array],
-    state: LMState,
     settings: LMSettings,
-    max_steps: int | Array,
-) -> LMState:
-    """Iterate from `state` until converged or until `max_steps` steps are decided (the
-    step count includes those of earlier calls). See [`levenberg_marquardt`][]."""
+) -> Callable[[LMState], LMState]:
+    """One iteration of [`levenberg_marquardt`][] as a function `state -> state`: it
+    evaluates the model at the proposed step, accepts or rejects it, updates the damping
+    and proposes the next step (iteration 0 evaluates the start)."""
     rtol, atol, damped, decrease_tol, _ = settings
-    dtype = state.lam.dtype
-    eye = jnp.eye(state.normal.g.shape[0], dtype=dtype)
 
     def propose(x, normal, lam):
         H, g = normal.H, normal.g
-        delta, finite = solve_spd(H + lam * eye, -g)
+        delta, finite = solve_spd(H + lam * jnp.eye(g.shape[0], dtype=g.dtype), -g)
         small = jnp.max(jnp.abs(delta)) <= atol + rtol * scale(x)
         if decrease_tol is not None:
             small = small | (-jnp.sum(g * delta) <= decrease_tol)
         predicted = -2.0 * jnp.sum(g * delta) - jnp.sum(delta * (H @ delta))
         return retract(x, delta), finite, small, predicted
 
-    def cond(s: LMState):
-        return (s.k <= max_steps) & ~s.done
-
     def body(s: LMState):
+        dtype = s.lam.dtype
         new = model(s.x_try)
         first = s.k == 0
         cost, cost_new = s.normal.cost, new.cost
@@ -175,7 +170,24 @@ def lm_continue(
         x_try, finite, small, predicted = propose(x, normal, lam)
         return LMState(s.k + 1, x, normal, lam, nu, done, done, x_try, finite, small, predicted)
 
-    return jax.lax.while_loop(cond, body, state)
+    return body
+
+
+def lm_continue(
+    model: Callable[[PyTree], NormalEquations],
+    retract: Callable[[PyTree, Array], PyTree],
+    scale: Callable[[PyTree], Array],
+    state: LMState,
+    settings: LMSettings,
+    max_steps: int | Array,
+) -> LMState:
+    """Iterate from `state` until converged or until `max_steps` steps are decided (the
+    step count includes those of earlier calls). See [`levenberg_marquardt`][]."""
+
+    def cond(s: LMState):
+        return (s.k <= max_steps) & ~s.done
+
+    return jax.lax.while_loop(cond, lm_iteration(model, retract, scale, settings), state)
 
 
 def lm_result(state: LMState, retract, settings: LMSettings) -> LMResult:
@@ -371,3 +383,58 @@ def optx_solver(solver: str, rtol: float, atol: float):
     if solver == "gn":
         return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=NormalCholesky())
     raise ValueError(f'`solver` must be "lm" or "gn"; got {solver!r}.')
+
+
+class KernelLevenbergMarquardt(optx.AbstractLeastSquaresSolver):
+    """jaxloc's kernel ([`levenberg_marquardt`][]) as an optimistix least-squares solver,
+    for `optx.least_squares` (its implicit adjoint, `RESULTS`, `max_steps` and `throw`).
+
+    optimistix iterates `y` in a vector space, the kernel a point on a manifold (poses).
+    `y` is the point's coordinates in a chart around a fixed base point carried in
+    `args`: `point(y, args)` is the point (e.g. `T0 exp(y)` per pose) and
+    `coordinates(x, args)` its inverse. The state keeps the point itself and the kernel
+    re-linearizes there (`model(x, args)`: the normal equations with respect to the local
+    perturbation of `retract`), exactly as [`levenberg_marquardt`][] does; each step
+    returns the chart coordinates of the accepted point, which is what the adjoint
+    differentiates through `fn(y, args)` (the residuals at `point(y, args)`).
+
+    Options: `"active"` (a `bool` array; default `True`): an inactive problem takes no
+    step. `max_steps` of `optx.least_squares` counts iterations as the kernel does, the
+    start's evaluation included: pass the kernel's `max_steps + 1`.
+    """
+
+    model: Callable[[PyTree, PyTree], NormalEquations]
+    retract: Callable[[PyTree, Array], PyTree]
+    scale: Callable[[PyTree], Array]
+    point: Callable[[Array, PyTree], PyTree]
+    coordinates: Callable[[PyTree, PyTree], Array]
+    num_unknowns: int
+    rtol: float
+    atol: float
+    decrease_tol: Any = None
+    lam0: float = 1e-2
+    norm: Callable[[PyTree], Array] = optx.max_norm
+
+    def _settings(self) -> LMSettings:
+        return LMSettings(self.rtol, self.atol, True, self.decrease_tol)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del fn, f_struct, aux_struct, tags
+        active = options.get("active", True)
+        return lm_start(self.point(y, args), self.num_unknowns, active=active, lam0=self.lam0)
+
+    def step(self, fn, y, args, options, state, tags):
+        del fn, y, options, tags
+        iterate = lm_iteration(
+            lambda x: self.model(x, args), self.retract, self.scale, self._settings()
+        )
+        state = iterate(state)
+        return self.coordinates(state.x, args), state, None
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, y, args, options, tags
+        return state.done, optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        del fn, args, options, tags, result
+        return y, aux, {"converged": state.converged}

@@ -241,6 +241,17 @@ def unpack(theta, T0_place, T0_over):
     return T_place, T_over.astype(T0_over.dtype)
 
 
+def pack(T_place, T_over, T0_place, T0_over):
+    """The inverse of [`unpack`][]: the tangent vector `theta` `(6 n,)` with `T =
+    T0 exp(delta)` per pose (placements 1, 2, ... then the overhead camera; placement 0
+    is the gauge and has no coordinates). A chart: valid while each rotation from `T0`
+    is below pi."""
+    rminus = jaxlie.manifold.rminus
+    d = jax.vmap(lambda t0, t: rminus(jaxlie.SE3(t0), jaxlie.SE3(t)))(T0_place[1:], T_place[1:])
+    d_over = rminus(jaxlie.SE3(T0_over), jaxlie.SE3(T_over))
+    return jnp.concatenate([d.reshape(-1), d_over]).astype(T0_place.dtype)
+
+
 #: The ordered pairs (observer, target) of mutual sightings, grouped by observer.
 OBSERVER = np.array([0, 0, 1, 1, 2, 2])
 TARGET = np.array([1, 2, 0, 2, 0, 1])

@@ -24,6 +24,7 @@ from jaxtyping import Array
 from .._core.least_squares import (
     implicit_step,
     jvp_nonzero,
+    KernelLevenbergMarquardt,
     levenberg_marquardt,
     optx_solver,
 )
@@ -49,6 +50,7 @@ from .._model.measurements import (
     CycleData,
     normal_equations,
     OBSERVER,
+    pack,
     predict,
     sighting_squares,
     TARGET,
@@ -62,7 +64,7 @@ from .._model.measurements import (
 
 #: Solvers of [`jaxloc.refine_cycle`][]: jaxloc's least-squares kernel, or optimistix's
 #: Levenberg--Marquardt / Gauss--Newton on the same residuals.
-CYCLE_SOLVERS = ("lm", "optx-lm", "optx-gn")
+CYCLE_SOLVERS = ("lm", "optx-kernel", "optx-lm", "optx-gn")
 #: Predicted decrease of the whitened cost (chi-square units) below which a step of the
 #: kernel counts as converged, at the default tolerances (`rtol = atol = 1e-6`); it scales
 #: with the square of the tighter one.
@@ -137,8 +139,8 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, l
     n = T0_place.shape[0]
     out = levenberg_marquardt(
         lambda x: normal_equations(x[0], x[1], data, rig, strategy, loss),
-        lambda x, delta: unpack(delta, *x),
-        lambda x: jnp.max(jnp.abs(x[0][:, 4:])),
+        _retract,
+        _position_scale,
         (T0_place, T0_over),
         num_unknowns=6 * n,
         max_steps=max_steps,
@@ -320,12 +322,61 @@ def _reject_and_resolve(T_place, T_over, data, rig, strategy, active, settings, 
     return T_place, T_over, num_steps, converged, rejected, chi2 + runner_up_cost - robust_cost
 
 
+class _CycleModel(eqx.Module):
+    """The cycle's normal equations at the poses `x = (T_place, T_over)` for
+    [`KernelLevenbergMarquardt`][jaxloc._core.least_squares.KernelLevenbergMarquardt]
+    (`args = (T0_place, T0_over, data, rig)`, as `optx.least_squares` passes them)."""
+
+    strategy: str = eqx.field(static=True)
+
+    def __call__(self, x, args):
+        _, _, data, rig = args
+        return normal_equations(x[0], x[1], data, rig, self.strategy, None)
+
+
+def _kernel_solver(strategy: str, num_unknowns: int, rtol, atol) -> KernelLevenbergMarquardt:
+    """The kernel of [`_lm`][] (same damping, scale and stopping rule) as an optimistix
+    solver over the chart `theta` of [`unpack`][] at the start."""
+    return KernelLevenbergMarquardt(
+        model=_CycleModel(strategy),
+        retract=_retract,
+        scale=_position_scale,
+        point=_chart_point,
+        coordinates=_chart_coordinates,
+        num_unknowns=num_unknowns,
+        rtol=rtol,
+        atol=atol,
+        decrease_tol=_NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2,
+    )
+
+
+def _retract(x, delta):
+    return unpack(delta, *x)
+
+
+def _position_scale(x):
+    return jnp.max(jnp.abs(x[0][:, 4:]))
+
+
+def _chart_point(theta, args):
+    return unpack(theta, args[0], args[1])
+
+
+def _chart_coordinates(x, args):
+    return pack(x[0], x[1], args[0], args[1])
+
+
 def _optx_refine(T0_place, T0_over, data, rig, strategy, solver, settings):
     max_steps, rtol, atol = settings
+    num_unknowns = 6 * T0_place.shape[0]
+    if solver == "optx-kernel":
+        opt, max_steps = _kernel_solver(strategy, num_unknowns, rtol, atol), max_steps + 1
+    else:
+        opt = optx_solver(solver.removeprefix("optx-"), rtol, atol)
     sol = optx.least_squares(
         lambda theta, args: _cycle_residuals(strategy, theta, *args),
-        optx_solver(solver.removeprefix("optx-"), rtol, atol),
-        jnp.zeros(6 * T0_place.shape[0], T0_place.dtype),
+        opt,
+        jnp.zeros(num_unknowns, T0_place.dtype),
         args=(T0_place, T0_over, data, rig),
         max_steps=max_steps,
         throw=False,
@@ -503,7 +554,9 @@ def refine_cycle(
         (a closed form's wrong branch); any other failure is passed through.
     - `solver`: keyword only, as are the following. `"lm"` (default): jaxloc's
         least-squares kernel, re-linearized at the current poses with the model's
-        chain-rule Jacobian (the fast path for Monte Carlo); `"optx-lm"` / `"optx-gn"`:
+        chain-rule Jacobian (the fast path for Monte Carlo); `"optx-kernel"`: the same
+        kernel as an optimistix solver through `optx.least_squares` (single start, no
+        robust loss; optimistix's implicit adjoint); `"optx-lm"` / `"optx-gn"`:
         `optx.LevenbergMarquardt` / `optx.GaussNewton` on the same residuals. All reach
         the same minimum; gradients are implicit (w.r.t. the observations and the rig;
         the minimizer does not depend on `estimate`).
@@ -562,7 +615,7 @@ def refine_cycle(
     Single cycle; batch with `jax.vmap`. Works under `jit`, `vmap` and `grad`.
     """
     if solver not in CYCLE_SOLVERS:
-        raise ValueError(f'`solver` must be "lm", "optx-lm" or "optx-gn"; got {solver!r}.')
+        raise ValueError(f"`solver` must be one of {CYCLE_SOLVERS}; got {solver!r}.")
     robust = robust_loss(loss, loss_scale)
     if robust is not None and solver != "lm":
         raise ValueError(
