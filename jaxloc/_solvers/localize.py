@@ -8,6 +8,7 @@ placement it saw ([`jaxloc.solve_overhead_pose`][]). Every estimate passes the g
 is called `successful`.
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -220,5 +221,12 @@ def localize_cycle(
             f"`rig` must be a jaxloc.Rig (the team's cameras and noise; e.g. "
             f"`jaxloc.Rig.paper()` or `scenario.rig`); got {type(rig).__name__}."
         )
-    (estimate,) = localize_cycle_methods(observations, rig, (method,))
+    estimate = _localize_cycle_impl(observations, rig, method)
     return raise_if_failed(estimate, estimate.result, throw)
+
+
+@eqx.filter_jit(inline=True)
+def _localize_cycle_impl(observations: CycleObservations, rig: Rig, method: str):
+    # Compiled once per shape and method for eager callers; inlined into a caller's trace.
+    (estimate,) = localize_cycle_methods(observations, rig, (method,))
+    return estimate
