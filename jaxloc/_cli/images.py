@@ -97,13 +97,10 @@ def _check_model_options(args) -> None:
             )
 
 
-def _cmd_calibrate(args) -> int:
-    from .._cameras.files import save_camera
-    from .._vision.calibrate import (
-        calibrate_omni,
-        calibrate_pinhole,
-        parse_board,
-    )
+def _check_calibrate_args(args) -> tuple[int, int]:
+    """Every check of `jaxloc calibrate`'s arguments that needs no image: the board
+    `(cols, rows)`, or a `ValueError` naming the option."""
+    from .._vision.calibrate import parse_board
 
     board = parse_board(args.board)
     if not (math.isfinite(args.square) and args.square > 0):
@@ -126,6 +123,32 @@ def _cmd_calibrate(args) -> int:
             "`--rational` cannot be saved with `--format kalibr` (Kalibr's radtan has 4 "
             "coefficients); use the OpenCV or JSON format."
         )
+    return board
+
+
+def _omni_options(args) -> dict:
+    """`calibrate_omni`'s keyword arguments from the omni options."""
+    omni_options = dict(
+        window=args.window or 5, fix_xi=args.fix_xi, fix_distortion=args.fix_distortion,
+        fix_skew=not args.estimate_skew,
+        principal_point=tuple(args.principal_point) if args.principal_point else None,
+    )  # fmt: skip
+    # Given only when set, so that calibrate_omni's own defaults apply otherwise.
+    for name in ("xi_init", "max_steps", "focal_init", "dist_init", "fix_coefficients"):
+        value = getattr(args, name)
+        if value is not None:
+            omni_options[name] = tuple(value) if isinstance(value, list) else value
+    for name in ("fix_focal", "fix_center"):
+        if getattr(args, name):
+            omni_options[name] = True
+    return omni_options
+
+
+def _cmd_calibrate(args) -> int:
+    from .._cameras.files import save_camera
+    from .._vision.calibrate import calibrate_omni, calibrate_pinhole
+
+    board = _check_calibrate_args(args)
     pinhole_options = dict(
         fix_aspect_ratio=args.fix_aspect_ratio, fix_k3=args.fix_k3 or args.format == "kalibr",
         zero_tangent=args.zero_tangent, rational=args.rational, window=args.window or 11,
@@ -138,24 +161,21 @@ def _cmd_calibrate(args) -> int:
     if args.model == "pinhole":
         cal = calibrate_pinhole(images, board, args.square, **pinhole_options)
     else:
-        omni_options = dict(
-            window=args.window or 5, fix_xi=args.fix_xi, fix_distortion=args.fix_distortion,
-            fix_skew=not args.estimate_skew,
-            principal_point=tuple(args.principal_point) if args.principal_point else None,
-        )  # fmt: skip
-        # Given only when set, so that calibrate_omni's own defaults apply otherwise.
-        for name in ("xi_init", "max_steps", "focal_init", "dist_init", "fix_coefficients"):
-            value = getattr(args, name)
-            if value is not None:
-                omni_options[name] = tuple(value) if isinstance(value, list) else value
-        for name in ("fix_focal", "fix_center"):
-            if getattr(args, name):
-                omni_options[name] = True
-        cal = calibrate_omni(images, board, args.square, **omni_options)
+        cal = calibrate_omni(images, board, args.square, **_omni_options(args))
     extra = {"rms_px": cal.rms, "num_images": len(cal.used)}
     save_camera(cal.camera, args.out, args.format,
                 extra=None if args.format == "kalibr" else extra)  # fmt: skip
-    s = cal.summary()
+    summary = cal.summary()
+    _print_calibration(args, cal, summary, board, images)
+    chatter(args)(f"wrote {args.out} ({args.format or 'auto'})")
+    if args.json:
+        write_report(args.json, summary, quiet=args.quiet)
+    return EXIT_OK
+
+
+def _print_calibration(args, cal, s: dict, board, images) -> None:
+    """A pinhole or omni calibration's parameters (from its summary `s`), standard
+    deviations and RMS."""
     print(f"{args.model} calibration from {len(cal.used)} of {len(images)} images "
           f"(board {board[0]}x{board[1]}, square {args.square} m)")  # fmt: skip
     if cal.rejected:
@@ -167,10 +187,6 @@ def _cmd_calibrate(args) -> int:
         print(f"  xi: {s['camera']['xi']:.6f}")
     print("  std: " + ", ".join(f"{k} {v:.3g}" for k, v in cal.std.items()))
     print(f"  reprojection RMS {cal.rms:.4f} px")
-    chatter(args)(f"wrote {args.out} ({args.format or 'auto'})")
-    if args.json:
-        write_report(args.json, s, quiet=args.quiet)
-    return EXIT_OK
 
 
 def _calibrate_ptz(args, board, pinhole_options) -> int:
@@ -218,13 +234,13 @@ def _calibrate_ptz(args, board, pinhole_options) -> int:
     return EXIT_OK
 
 
-def _cmd_localize(args) -> int:
-    from .._vision.localize import localize_images
-    from .._vision.team import load_team
-
-    out = args.out or os.path.splitext(args.team)[0] + "_poses.json"
-    check_outputs(argparse.Namespace(out=out), files=("out",))
-    team = load_team(args.team)
+def _check_localize_args(args) -> tuple[str, str]:
+    """Every check of `jaxloc localize`'s arguments that needs no image; returns the
+    poses JSON and plot paths (defaults beside the team file)."""
+    stem = os.path.splitext(args.team)[0]
+    out = args.out or stem + "_poses.json"
+    plot = args.plot or stem + "_formation.png"
+    check_outputs(argparse.Namespace(out=out, plot=plot), files=("out",))
     if args.no_refine and (args.loss is not None or args.loss_scale is not None):
         raise ValueError("--loss and --loss-scale apply to the refinement; drop --no-refine.")
     if args.loss_scale is not None and args.loss is None:
@@ -234,11 +250,31 @@ def _cmd_localize(args) -> int:
             f"--loss-scale must be a positive number of standard deviations; got "
             f"{args.loss_scale}."
         )
+    return out, plot
+
+
+def _cmd_localize(args) -> int:
+    from .._vision.localize import localize_images
+    from .._vision.team import load_team
+
+    out, plot = _check_localize_args(args)
+    team = load_team(args.team)
     res = localize_images(
         team, refine=not args.no_refine, loss=args.loss, loss_scale=args.loss_scale
     )
     d = res.to_dict()
     print(f"{team.strategy} cycle from {args.team}: {d['status']} ({d['method']})")
+    _print_poses(d)
+    _print_sightings(d, args)
+    for note in d["notes"]:
+        print(f"  note: {note}")
+    write_report(out, d, quiet=args.quiet)
+    plot_formation(d, plot, title=f"{team.strategy} cycle from {os.path.basename(args.team)}")
+    chatter(args)(f"wrote {plot}")
+    return EXIT_OK if d["status"] == "successful" else EXIT_NO_RESULT
+
+
+def _print_poses(d: dict) -> None:
     print("Poses at the end of the cycle, in W = C1's body frame at the start (m, deg):")
     for name, p in d["poses"].items():
         pos = ", ".join(f"{x:8.4f}" for x in p["position_m"])
@@ -247,23 +283,110 @@ def _cmd_localize(args) -> int:
         if "position_std_m" in p:
             std = "  std " + ", ".join(f"{100 * x:.2f}" for x in p["position_std_m"]) + " cm"
         print(f"  {name:<3} position ({pos})  yaw/pitch/roll ({ypr}){std}")
+
+
+def _sighting_text(r: dict) -> str:
+    what = "overhead camera C" if r["kind"] == "overhead" else r["observer"]
+    return f"step {r['step']}: {what} seeing {r['target']} ({r['kind']})"
+
+
+def _print_sightings(d: dict, args) -> None:
+    """The missing sightings (markers not found) and the rejected ones (left out by a
+    robust loss), `none` when there are none."""
+    missing = d["missing_sightings"]
+    print(f"Missing sightings (marker not found in the image): {len(missing) or 'none'}")
+    for r in missing:
+        print(f"  {_sighting_text(r)}: {r['reason']}")
+    rejected = d["rejected_sightings"]
     if args.loss is not None:
-        rejected = d["rejected_sightings"]
-        count = len(rejected) or "none"
-        print(f"Rejected sightings ({args.loss} loss, outliers left out): {count}")
-        for r in rejected:
-            what = "overhead camera C" if r["kind"] == "overhead" else r["observer"]
-            print(f"  step {r['step']}: {what} seeing {r['target']} ({r['kind']})")
-    for note in d["notes"]:
-        print(f"  note: {note}")
-    write_report(out, d, quiet=args.quiet)
-    return EXIT_OK if d["status"] == "successful" else EXIT_NO_RESULT
+        why = f"{args.loss} loss, outliers left out"
+    elif args.no_refine:
+        why = "closed form only"
+    else:
+        why = "least squares, none left out; --loss cauchy leaves outliers out"
+    print(f"Rejected sightings ({why}): {len(rejected) or 'none'}")
+    for r in rejected:
+        print(f"  {_sighting_text(r)}")
+
+
+# 2-D 95 % ellipse: chi-square quantile with 2 degrees of freedom, -2 ln(0.05).
+_CHI2_2D_95 = -2.0 * math.log(0.05)
+
+
+def _ellipse_scale(semi_axes: list[float], extent: float) -> float:
+    """Magnification that makes the largest ellipse about 10 % of the plot's extent,
+    rounded down to 1, 2 or 5 times a power of ten, at least 1."""
+    big = max(semi_axes, default=0.0)
+    if not big > 0:
+        return 1.0
+    raw = 0.1 * extent / big
+    if raw <= 1:
+        return 1.0
+    decade = 10 ** math.floor(math.log10(raw))
+    return max(m * decade for m in (1, 2, 5) if m * decade <= raw)
+
+
+def plot_formation(d: dict, path: str, title: str = "") -> None:
+    """Top view (x, y in W, m) of a `jaxloc localize` report `d`: each ground robot's
+    positions at every step joined by its moves, every robot's end-of-cycle position
+    (C's too) and its 2-D 95 % uncertainty ellipse from the x-y block of
+    `position_cov_m2` (magnified by the factor the legend states), written to `path`
+    (any suffix matplotlib writes) with matplotlib's Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    colors = {"C": "black", "C1": "tab:red", "C2": "tab:green", "C3": "tab:blue"}
+    fig, ax = plt.subplots(figsize=(6.4, 5.6))
+    ends = {n: np.asarray(p["position_m"], float) for n, p in d["poses"].items()}
+    for name, track in d["positions_m"].items():
+        xy = np.asarray(track, float)[:, :2]
+        ax.plot(xy[:, 0], xy[:, 1], ":", color=colors[name], lw=1, alpha=0.6)
+        ax.plot(xy[:-1, 0], xy[:-1, 1], "o", color=colors[name], ms=4, alpha=0.5, mfc="none")
+        for a, b in zip(xy[:-1], xy[1:]):
+            if np.linalg.norm(b - a) > 1e-6:  # a move: an arrow from where it started
+                ax.annotate("", b, a, arrowprops=dict(arrowstyle="->", color=colors[name]))
+    pts = np.concatenate([np.asarray(t, float)[:, :2] for t in d["positions_m"].values()]
+                         + [e[None, :2] for e in ends.values()])  # fmt: skip
+    extent = float(np.max(np.ptp(pts, axis=0))) or 1.0
+    covs = {n: np.asarray(p["position_cov_m2"], float)[:2, :2]
+            for n, p in d["poses"].items() if "position_cov_m2" in p}  # fmt: skip
+    axes = {n: np.sqrt(np.maximum(np.linalg.eigvalsh(P), 0) * _CHI2_2D_95)
+            for n, P in covs.items()}  # fmt: skip
+    scale = _ellipse_scale([float(a.max()) for a in axes.values()], extent)
+    for name, e in ends.items():
+        marker = "s" if name == "C" else "o"
+        label = f"{name} (z {e[2]:.2f} m)" if name == "C" else name
+        ax.plot(e[0], e[1], marker, color=colors[name], ms=5, label=label)
+        if name in covs:
+            w, V = np.linalg.eigh(covs[name])
+            angle = math.degrees(math.atan2(V[1, 1], V[0, 1]))
+            width, height = 2 * scale * axes[name][1], 2 * scale * axes[name][0]
+            ax.add_patch(Ellipse((e[0], e[1]), width, height, angle=angle, fill=False,
+                                 color=colors[name], lw=1.5))  # fmt: skip
+    what = (f"95 % ellipses x{scale:g}" if covs else "no covariance (closed form only)")
+    ax.set_title(f"{title}\n{d['status']} ({d['method']}); {what}; arrows: moves", fontsize=9)
+    ax.set_xlabel("x in W (m)")
+    ax.set_ylabel("y in W (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
 def register(sub: argparse._SubParsersAction, parents=None) -> None:
     """Add the `calibrate` and `localize` subcommands to `jaxloc`'s subparsers (each with
     the options of the `parents` parsers; default: `--quiet`)."""
     parents = [quiet_option()] if parents is None else list(parents)
+    _add_calibrate(sub, parents)
+    _add_localize(sub, parents)
+
+
+def _add_calibrate(sub: argparse._SubParsersAction, parents: list) -> None:
     p = sub.add_parser(
         "calibrate", parents=parents, epilog=EXIT_CODES_HELP,
         formatter_class=HelpFormatter,
@@ -293,6 +416,15 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
     p.add_argument("--window", type=int, default=None,
                    help="cornerSubPix half window in px (default 11; omni 5)")  # fmt: skip
     p.add_argument("--json", metavar="FILE", help="also write the calibration report")
+    _add_pinhole_ptz_options(p)
+    _add_omni_options(p)
+    p.add_argument("images", nargs="*", metavar="IMAGES",
+                   help="pinhole and omni: image files, quoted glob patterns or "
+                   "folders")  # fmt: skip
+    p.set_defaults(func=_cmd_calibrate)
+
+
+def _add_pinhole_ptz_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("pinhole and ptz options")
     g.add_argument("--fix-aspect-ratio", action="store_true", help="fx = fy")
     g.add_argument("--fix-k3", action="store_true", help="k3 = 0 (as Kalibr's radtan)")
@@ -305,6 +437,9 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
                    help="a zoom step in [0, 1] (wide to tele) and its images: a folder, a "
                    "quoted glob pattern or one file; repeat for every step (at least "
                    "two)")  # fmt: skip
+
+
+def _add_omni_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("omni options")
     g.add_argument("--xi-init", type=float, default=None, metavar="XI",
                    help="starting mirror parameter xi (default 1, a paraboloid)")  # fmt: skip
@@ -337,10 +472,9 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
                    help="starting principal point in px (default: the image centre)")  # fmt: skip
     g.add_argument("--max-steps", type=int, default=None, metavar="N",
                    help="Levenberg-Marquardt iteration limit (default 200)")  # fmt: skip
-    p.add_argument("images", nargs="*", metavar="IMAGES",
-                   help="pinhole and omni: image files, quoted glob patterns or "
-                   "folders")  # fmt: skip
-    p.set_defaults(func=_cmd_calibrate)
+
+
+def _add_localize(sub: argparse._SubParsersAction, parents: list) -> None:
     p = sub.add_parser(
         "localize", parents=parents, epilog=EXIT_CODES_HELP,
         formatter_class=HelpFormatter,
@@ -350,7 +484,9 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
             "markers in every image, turn them into bearings through each calibrated camera, "
             "solve the cycle in closed form and refine it jointly; print every robot's "
             "end-of-cycle position and yaw/pitch/roll in C1's body frame at the start, with "
-            "standard deviations, and write them as JSON. The team file names the strategy, "
+            "standard deviations, the sightings missing (a marker not found: occluded, out "
+            "of view) and those rejected (--loss), write them as JSON and plot the formation "
+            "from above with its uncertainty ellipses. The team file names the strategy, "
             "the camera files and the images of every step."
         ),
     )  # fmt: skip
@@ -359,6 +495,10 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
                    "odometry (see jaxloc.load_team)")  # fmt: skip
     p.add_argument("--out", metavar="FILE", help="poses JSON (default: TEAM_poses.json); "
                    "written also when the status is not successful (exit code 1)")
+    p.add_argument("--plot", metavar="FILE",
+                   help="top view of the formation: every ground robot's moves, the four "
+                   "end-of-cycle positions with their 95%% uncertainty ellipses (default: "
+                   "TEAM_formation.png; the suffix picks the format)")  # fmt: skip
     p.add_argument("--no-refine", action="store_true",
                    help="closed form only (no joint refinement, no covariances)")  # fmt: skip
     p.add_argument("--loss", choices=("huber", "cauchy"), default=None,

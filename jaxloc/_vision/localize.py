@@ -281,12 +281,29 @@ class ImageLocalization:
             "positions_m": {r: Tb[:, i, 4:].tolist() for i, r in enumerate(GROUND)},
             "stats": {k: np.asarray(v).tolist() for k, v in self.estimate.stats.items()},
             "detections": dets,
+            "missing_sightings": self.missing(),
             "rejected_sightings": [
                 {"kind": kind, "step": step, "observer": observer, "target": target}
                 for kind, step, observer, target in self.rejected
             ],
             "notes": self.notes,
         }
+
+    def missing(self) -> list[dict[str, Any]]:
+        """The sightings the estimate did without: every marker not found in its image
+        (occluded, out of view) or cut by the image border, as `{"kind": "mutual" |
+        "overhead", "step", "observer", "target", "reason"}`, in step order."""
+        out = []
+        for (k, obs), det in sorted(self.detections.items()):
+            for t, d in det.items():
+                if d.detected and not d.truncated:
+                    continue
+                out.append({
+                    "kind": "overhead" if obs == "C" else "mutual", "step": k,
+                    "observer": obs, "target": t,
+                    "reason": "cut by the image border" if d.detected else "marker not found",
+                })  # fmt: skip
+        return out
 
 
 def localize_images(

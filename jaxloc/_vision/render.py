@@ -252,6 +252,8 @@ def render_markers(
     background_level: float = 120.0,
     names: Any = None,
     info: dict[str, Any] | None = None,
+    objects: Any = None,
+    occluders: Any = None,
 ) -> tuple[np.ndarray, list[dict[str, Any]]]:
     r"""Render coloured spherical markers seen by one camera.
 
@@ -270,14 +272,26 @@ def render_markers(
     - `background_level`: mean grey level of the background.
     - `names`: optional label of each marker for the ground truth.
     - `info`: optional dict that receives `info["distractors"]`, the distractors drawn
-      (kind, colour, centroid).
+      (kind, colour, centroid), and `info["objects"]`, the `objects` drawn.
+    - `objects`: other spheres in the scene that are not markers (e.g. a ball of a
+      marker-like colour, which the detector must refuse): a sequence of dicts
+      `{"center": (3,) in the camera frame (m), "radius": m, "bgr": colour}` (optional
+      `"name"`), drawn exactly like the markers and painted with them, far to near.
+    - `occluders`: flat things in front of everything else (a mirror's support rod, a
+      cable): a sequence of dicts `{"polygon": (m, 3) vertices in the camera frame (m),
+      "bgr": colour}` (optional `"name"`); each edge is sampled at 32 points and
+      projected through the camera (so straight edges bend with the lens), and they are
+      painted last, over every marker and object.
 
     **Returns:** `(image, truth)`: a `uint8` BGR image `(height, width, 3)` and, per
     marker, a dict with `name`, `visible` (drawn at least partly inside the image and,
     for an omnidirectional camera, the mirror's annulus), `truncated` (partly cut by the
     image border or the annulus), `center_px` (projection of the
     sphere's centre), `centroid_px` (centroid of the drawn silhouette, clipped to the
-    image/annulus), `area_px`, `bgr`. Markers are painted far to near (occlusion).
+    image/annulus), `area_px`, `bgr`, and, with `occluders`, `occluded`: the fraction
+    of the marker's silhouette they hide (`centroid_px` and `area_px` are then those of
+    the part left; a marker with less than half a pixel left is not `visible`). Markers
+    are painted far to near (occlusion).
     """
     p = np.asarray(points_cam, dtype=np.float64).reshape(-1, 3)
     n = p.shape[0]
@@ -304,9 +318,22 @@ def render_markers(
         # Keep distractors clear of every marker's outline (centre and rim points).
         keep_out = [q for i in range(n) if ok[i] for q in poly[i][::8]]
     distractor_info = _draw_distractors(img, rng, distractors, ring_mask, keep_out)
-    order = np.argsort(-np.linalg.norm(p, axis=-1)) if n else []
+    objs = _object_silhouettes(camera, objects)
+    occ_layers = _occluder_coverage(camera, occluders, (h, w), ring_mask)
+    occ = np.zeros((h, w), np.float32)
+    for _, y0, x0, cov in occ_layers:
+        patch = occ[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        np.maximum(patch, cov, out=patch)
+    # Markers and objects, far to near (the nearer hides the farther).
+    depth = [(float(np.linalg.norm(p[i])), "marker", i) for i in range(n)]
+    depth += [(float(np.linalg.norm(o["center"])), "object", j) for j, o in enumerate(objs)]
     rec: dict[int, dict[str, Any]] = {}
-    for i in order:
+    for _, kind, i in sorted(depth, key=lambda d: -d[0]):
+        if kind == "object":
+            o = objs[i]
+            if o["ok"]:
+                o["entry"].update(_draw_sphere(img, o["poly"], o["bgr"], ring_mask, occ))
+            continue
         name = names[i] if names is not None else str(i)
         entry = {"name": name, "visible": False, "center_px": None, "centroid_px": None,
                  "area_px": 0.0, "bgr": list(colors[i])}  # fmt: skip
@@ -320,20 +347,12 @@ def render_markers(
             rr_p = np.hypot(pu - cx, pv - cy)
             cut = cut or bool(np.any((rr_p < r_in - 6) | (rr_p > r_out + 6)))
         entry["truncated"] = cut
-        res = _raster_polygon(poly[i], (h, w))
-        if res is None:
-            continue
-        y0, x0, cov, _, _ = res
-        if ring_mask is not None:
-            cov = cov * ring_mask[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
-        if cov.sum() <= 0:
-            continue
-        _paint(img, y0, x0, cov, colors[i])
-        # Centroid of what is actually drawn (clipped), at the anti-aliased resolution.
-        yy, xx = np.mgrid[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
-        s = float(cov.sum())
-        centroid = [float((cov * xx).sum() / s), float((cov * yy).sum() / s)]
-        entry.update(visible=True, area_px=s, centroid_px=centroid)
+        entry.update(_draw_sphere(img, poly[i], colors[i], ring_mask, occ))
+        if occ_layers and "occluded" not in entry:
+            entry["occluded"] = 0.0
+    # Occluders last: in front of every marker and object.
+    for bgr, y0, x0, cov in occ_layers:
+        _paint(img, y0, x0, cov, bgr)
     # Nearer markers are painted later and hide farther ones; the truth keeps each
     # marker's own (unoccluded) silhouette: overlapping markers are not a centroid test.
     truth = [rec[i] for i in range(n)]
@@ -341,7 +360,80 @@ def render_markers(
     image = _finish(img, rng, blur_sigma, noise_sigma, gain)
     if info is not None:
         info["distractors"] = distractor_info
+        info["objects"] = [o["entry"] for o in objs]
     return image, truth
+
+
+def _draw_sphere(img, poly, bgr, ring_mask, occ) -> dict[str, Any]:
+    """Paint one sphere's silhouette `poly` (px) and return its truth: `visible`,
+    `area_px` and `centroid_px` of the part that the occluder coverage `occ` leaves
+    (and `occluded`, the fraction hidden, when `occ` hides any of it)."""
+    h, w = img.shape[:2]
+    res = _raster_polygon(poly, (h, w))
+    if res is None:
+        return {}
+    y0, x0, cov, _, _ = res
+    if ring_mask is not None:
+        cov = cov * ring_mask[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+    total = float(cov.sum())
+    if total <= 0:
+        return {}
+    _paint(img, y0, x0, cov, bgr)
+    # Centroid of what is actually seen (clipped, not occluded), anti-aliased.
+    seen = cov * (1.0 - occ[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]])
+    s = float(seen.sum())
+    out: dict[str, Any] = {}
+    if s < total:
+        out["occluded"] = 1.0 - s / total
+    if s < 0.5 and s < total:
+        return dict(out, area_px=s)
+    yy, xx = np.mgrid[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+    centroid = [float((seen * xx).sum() / s), float((seen * yy).sum() / s)]
+    return dict(out, visible=True, area_px=s, centroid_px=centroid)
+
+
+def _object_silhouettes(camera: AbstractCamera, objects: Any) -> list[dict[str, Any]]:
+    """Silhouettes of `render_markers`' `objects`, each with its truth entry."""
+    out = []
+    for j, o in enumerate(objects or ()):
+        c = np.asarray(o["center"], np.float64).reshape(3)
+        r = float(o["radius"])
+        if not (r > 0 and np.all(np.isfinite(c))):
+            raise ValueError(f"`objects[{j}]` needs a finite `center` and a positive `radius`; "
+                             f"got {c.tolist()}, {r!r}.")  # fmt: skip
+        poly, center, ok = _silhouettes(camera, jnp.asarray(c[None]), r)
+        entry = {"name": o.get("name", f"object{j}"), "visible": False,
+                 "center_px": np.asarray(center[0]).tolist() if bool(ok[0]) else None,
+                 "centroid_px": None, "area_px": 0.0, "bgr": list(o["bgr"])}  # fmt: skip
+        out.append({"center": c, "poly": np.asarray(poly[0]), "ok": bool(ok[0]),
+                    "bgr": o["bgr"], "entry": entry})  # fmt: skip
+    return out
+
+
+def _occluder_coverage(camera: AbstractCamera, occluders: Any, shape_hw, ring_mask):
+    """`[(bgr, y0, x0, coverage)]` of `render_markers`' `occluders`: each polygon's edges
+    sampled at 32 points, projected through the camera and rasterized (anti-aliased),
+    clipped to the mirror's annulus for an omnidirectional camera."""
+    out = []
+    t = np.arange(32) / 32.0
+    for j, o in enumerate(occluders or ()):
+        v = np.asarray(o["polygon"], np.float64)
+        if v.ndim != 2 or v.shape[0] < 3 or v.shape[1] != 3 or not np.all(np.isfinite(v)):
+            raise ValueError(f"`occluders[{j}].polygon` must be finite vertices of shape "
+                             f"(m >= 3, 3); got shape {v.shape}.")  # fmt: skip
+        edges = v[:, None, :] + t[None, :, None] * (np.roll(v, -1, axis=0) - v)[:, None, :]
+        pts = jnp.asarray(edges.reshape(-1, 3))
+        if not bool(jnp.all(camera.projectable(pts))):
+            raise ValueError(f"`occluders[{j}].polygon` is not projectable by the camera "
+                             "everywhere (behind it, or outside its model's domain).")  # fmt: skip
+        res = _raster_polygon(np.asarray(camera.project(pts)), shape_hw)
+        if res is None:
+            continue
+        y0, x0, cov, _, _ = res
+        if ring_mask is not None:
+            cov = cov * ring_mask[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
+        out.append((o["bgr"], y0, x0, cov))
+    return out
 
 
 def _camera_points(rig, poses) -> tuple[np.ndarray, np.ndarray]:
@@ -361,6 +453,33 @@ def _camera_points(rig, poses) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mutual), np.asarray(over)
 
 
+def _world_in_cameras(rig, poses, points) -> np.ndarray:
+    """World points `(n, 3)` in every camera frame at every step: `(steps, 4, n, 3)`,
+    cameras in the order C, C1, C2, C3 (C1: its PTZ's base frame)."""
+    T = np.asarray(poses.T_world_body.wxyz_xyz)
+    steps = T.shape[0]
+    x = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.zeros((steps, 4, x.shape[0], 3))
+    if not x.shape[0]:
+        return out
+    R = np.asarray(rotations(jnp.asarray(T)))
+    T_o = np.asarray(poses.T_world_overhead.wxyz_xyz)
+    R_o = np.asarray(rotations(jnp.asarray(T_o)))
+    mount_R = np.asarray(rig.mount_rotations())[1:]
+    mount_t = np.asarray(rig.mount_translations())[1:]
+    for k in range(steps):
+        out[k, 0] = (x - T_o[4:]) @ R_o
+        for i in range(3):
+            q = (x - T[k, i, 4:]) @ R[k, i]  # body frame: R^T (x - p)
+            out[k, 1 + i] = (q - mount_t[i]) @ mount_R[i]  # camera: R_m^T (q - t_m)
+    return out
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: np.asarray(v).tolist() if isinstance(v, np.ndarray | tuple | list) else v
+            for k, v in d.items()}  # fmt: skip
+
+
 def render_cycle(
     scenario,
     truth,
@@ -373,6 +492,8 @@ def render_cycle(
     noise_sigma: float = 3.0,
     distractors: int = 4,
     lighting: float = 0.25,
+    objects: Any = None,
+    occluders: Any = None,
 ) -> dict[str, Any]:
     r"""Render every image of one simulated cycle.
 
@@ -387,12 +508,19 @@ def render_cycle(
     - `key`: JAX PRNG key. Keyword only, as are the following.
     - `out_dir`: if given, write `step{k}_{camera}.png` (camera `C`, `C1`, `C2`, `C3`)
       and `truth.json` there.
+    - `objects`: spheres standing in the scene, seen by every camera at every step: dicts
+      `{"position": (3,) in the cycle's world frame (m), "radius": m, "bgr": colour}`
+      (optional `"name"`); see [`jaxloc.render_markers`][].
+    - `occluders`: `{camera: [occluder, ...]}`, flat things fixed to a camera (`"C"`,
+      `"C1"`, `"C2"`, `"C3"`), in front of it at every step: dicts `{"polygon": (m, 3)
+      vertices in that camera's frame (m), "bgr": colour}` as
+      [`jaxloc.render_markers`][] takes (C1's frame is its PTZ's base frame).
     - other arguments: as [`jaxloc.render_markers`][].
 
     **Returns:** `{"images": {(k, cam): uint8 image}, "truth": {...}}` where `truth`
-    holds, per image, each marker's `center_px`/`centroid_px`/`visible`, and the true
-    poses (`T_world_body` `(steps, 3, 7)` wxyz_xyz, `T_world_overhead`) and move
-    distances.
+    holds, per image, each marker's `center_px`/`centroid_px`/`visible` (and `occluded`
+    when the camera has occluders) and the `objects` seen, and the true poses
+    (`T_world_body` `(steps, 3, 7)` wxyz_xyz, `T_world_overhead`) and move distances.
     """
     poses = truth.poses
     steps = poses.T_world_body.wxyz_xyz.shape[0]
@@ -402,6 +530,12 @@ def render_cycle(
     names = ("C1", "C2", "C3")
     rig = scenario.rig
     mutual, over = _camera_points(rig, poses)
+    objects = list(objects or ())
+    occluders = dict(occluders or {})
+    bad = sorted(set(occluders) - {"C", "C1", "C2", "C3"})
+    if bad:
+        raise ValueError(f"`occluders` keys must be cameras C, C1, C2, C3; got {bad}.")
+    where = _world_in_cameras(rig, poses, [o["position"] for o in objects])
     for k in range(steps):
         jobs = [
             ("C", rig.overhead, over[k], (0, 1, 2)),
@@ -412,15 +546,18 @@ def render_cycle(
         for c, (cam_name, camera, pts, seen) in enumerate(jobs):
             sel = list(seen)
             extra: dict[str, Any] = {}
+            objs = [dict(o, center=where[k, c, j]) for j, o in enumerate(objects)]
             img, t = render_markers(
                 camera, pts[sel], key=keys[4 * k + c], colors=[colors[j] for j in sel],
                 radius=radius, blur_sigma=blur_sigma, noise_sigma=noise_sigma,
                 distractors=distractors, lighting=lighting, names=[names[j] for j in sel],
-                info=extra,
+                info=extra, objects=objs, occluders=occluders.get(cam_name),
             )  # fmt: skip
             images[(k, cam_name)] = img
             per_image[f"step{k}_{cam_name}"] = {"step": k, "camera": cam_name, "markers": t,
                                                 "distractors": extra["distractors"]}  # fmt: skip
+            if objects:
+                per_image[f"step{k}_{cam_name}"]["objects"] = extra["objects"]
     gt = {
         "strategy": scenario.strategy,
         "marker_radius_m": radius,
@@ -430,12 +567,16 @@ def render_cycle(
         "move_distances_m": np.asarray(truth.move_distances).tolist(),
         "images": per_image,
     }
+    if objects:
+        gt["objects"] = [_jsonable(o) for o in objects]
+    if occluders:
+        gt["occluders"] = {c: [_jsonable(o) for o in v] for c, v in occluders.items()}
     if out_dir is not None:
         out_dir = os.fspath(out_dir)
         os.makedirs(out_dir, exist_ok=True)
         for (k, cam_name), img in images.items():
             path = os.path.join(out_dir, f"step{k}_{cam_name}.png")
-            if not cv2.imwrite(path, img):
+            if not cv2.imwrite(path, img, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
                 raise ValueError(f"Could not write image `{path}`.")
         with open(os.path.join(out_dir, "truth.json"), "w", encoding="utf-8") as f:
             json.dump(gt, f, indent=1)
@@ -610,7 +751,10 @@ def sphere_center_pixel(
     x = c.copy()
     a = np.asarray(_unproject1(camera, jnp.asarray(x)))
     probe = 0.01
-    poly, _, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0), 10.0 * math.sin(probe))
+    # Radii as arrays, not Python floats: a float is a static argument of the jitted
+    # `_silhouettes`, and every marker's own radius would compile it anew.
+    poly, _, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0),
+                               jnp.asarray(10.0 * math.sin(probe), a.dtype))  # fmt: skip
     a1, _ = _polygon_area_centroid(np.asarray(poly[0]))
     if not bool(ok[0]) or a1 <= 0 or not area > 0:
         return c
@@ -620,7 +764,8 @@ def sphere_center_pixel(
     r = 10.0 * math.sin(alpha)
     for _ in range(iterations):
         a = np.asarray(_unproject1(camera, jnp.asarray(x)))
-        poly, center, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0), r)
+        poly, center, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0),
+                                        jnp.asarray(r, a.dtype))  # fmt: skip
         if not bool(ok[0]):
             return c
         _, cen = _polygon_area_centroid(np.asarray(poly[0]))
