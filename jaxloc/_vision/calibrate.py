@@ -36,6 +36,7 @@ from jaxtyping import Array, Float
 
 from .._cameras.files import camera_to_dict
 from .._cameras.models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera, ZoomTable
+from .markers import imread
 
 
 # --------------------------------------------------------------------------------------
@@ -64,17 +65,6 @@ def check_board(board: Any) -> tuple[int, int]:
             f"`board` must be two integers >= 2 (inner corners per row and column); got {board!r}."
         )
     return int(cols), int(rows)
-
-
-def _read_gray(path: str) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"Image file `{path}` does not exist.")
-    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise ValueError(
-            f"Image file `{path}` is not a readable image (corrupt or unknown format)."
-        )
-    return img
 
 
 def object_points(board: tuple[int, int], square: float) -> np.ndarray:
@@ -120,7 +110,7 @@ def _detect_all(images, board, window):
     for k, item in enumerate(images):
         if isinstance(item, (str, os.PathLike)):
             name = os.fspath(item)
-            img = _read_gray(name)
+            img = imread(name, cv2.IMREAD_GRAYSCALE)
         else:
             name, img = f"images[{k}]", item
         c = find_corners(img, board, window=window, name=name)
