@@ -334,6 +334,57 @@ def _version() -> str:
     return __version__
 
 
+def _register_table1(sub, parents) -> None:
+    """`jaxloc table1`: the paper's Table I as Monte Carlo studies."""
+    p = sub.add_parser(
+        "table1", parents=parents, formatter_class=HelpFormatter,
+        help="the paper's Table I as distributions over many trials",
+        description=(
+            "The paper's Table I (simulation) as distributions: two Monte Carlo studies of "
+            "the paper's simulated scenario (saddle floor, sinusoidal ceiling, 2 px pixel "
+            "noise, 1% odometry), one per moving strategy (concurrent, sequential), with "
+            "the paper's single simulated run beside them.\n\n" + _STUDY_DESCRIPTION
+        ),
+        epilog=EXIT_CODES_HELP,
+    )  # fmt: skip
+    _study_options(p, studies=2)
+    p.set_defaults(func=_cmd_table1)
+
+
+def _register_simulate(sub, parents) -> None:
+    """`jaxloc simulate`: a Monte Carlo study of a scenario file."""
+    p = sub.add_parser(
+        "simulate", parents=parents, formatter_class=HelpFormatter,
+        help="Monte Carlo study of a scenario file (YAML/JSON)",
+        description=(
+            "A Monte Carlo study of any scenario (its world, formation, moves, cameras, "
+            "noise and strategy), read from a scenario file, with the same table as "
+            "'jaxloc table1'; the paper's single run is shown only for the paper's own "
+            "scenario.\n\n" + _STUDY_DESCRIPTION
+        ),
+        epilog=EXIT_CODES_HELP,
+    )  # fmt: skip
+    p.add_argument("--scenario", required=True, metavar="FILE",
+                   help="scenario file (YAML or JSON), e.g. written by jaxloc.save_scenario "
+                   "or 'jaxloc design --out'")  # fmt: skip
+    _study_options(p, studies=1)
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _register_cameras(sub, parents) -> None:
+    """`jaxloc cameras`: the preset cameras and their round-trip check."""
+    p = sub.add_parser(
+        "cameras", parents=parents, help="the paper's preset cameras and a round-trip check",
+        description=(
+            "Print the paper's nominal cameras (the overhead perspective camera, the PTZ at "
+            "its wide and tele ends, the omnidirectional camera): image size, fields of "
+            "view (deg), and the largest error of project(unproject(pixel)) over a grid of "
+            "pixels, a check of the camera models."
+        ),
+    )  # fmt: skip
+    p.set_defaults(func=_cmd_cameras)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `jaxloc` argument parser, every subcommand registered."""
     parser = argparse.ArgumentParser(
@@ -356,45 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
                                 title="commands")  # fmt: skip
     quiet = quiet_option()
-    p = sub.add_parser(
-        "table1", parents=[quiet], formatter_class=HelpFormatter,
-        help="the paper's Table I as distributions over many trials",
-        description=(
-            "The paper's Table I (simulation) as distributions: two Monte Carlo studies of "
-            "the paper's simulated scenario (saddle floor, sinusoidal ceiling, 2 px pixel "
-            "noise, 1% odometry), one per moving strategy (concurrent, sequential), with "
-            "the paper's single simulated run beside them.\n\n" + _STUDY_DESCRIPTION
-        ),
-        epilog=EXIT_CODES_HELP,
-    )  # fmt: skip
-    _study_options(p, studies=2)
-    p.set_defaults(func=_cmd_table1)
-    p = sub.add_parser(
-        "simulate", parents=[quiet], formatter_class=HelpFormatter,
-        help="Monte Carlo study of a scenario file (YAML/JSON)",
-        description=(
-            "A Monte Carlo study of any scenario (its world, formation, moves, cameras, "
-            "noise and strategy), read from a scenario file, with the same table as "
-            "'jaxloc table1'; the paper's single run is shown only for the paper's own "
-            "scenario.\n\n" + _STUDY_DESCRIPTION
-        ),
-        epilog=EXIT_CODES_HELP,
-    )  # fmt: skip
-    p.add_argument("--scenario", required=True, metavar="FILE",
-                   help="scenario file (YAML or JSON), e.g. written by jaxloc.save_scenario "
-                   "or 'jaxloc design --out'")  # fmt: skip
-    _study_options(p, studies=1)
-    p.set_defaults(func=_cmd_simulate)
-    p = sub.add_parser(
-        "cameras", parents=[quiet], help="the paper's preset cameras and a round-trip check",
-        description=(
-            "Print the paper's nominal cameras (the overhead perspective camera, the PTZ at "
-            "its wide and tele ends, the omnidirectional camera): image size, fields of "
-            "view (deg), and the largest error of project(unproject(pixel)) over a grid of "
-            "pixels, a check of the camera models."
-        ),
-    )  # fmt: skip
-    p.set_defaults(func=_cmd_cameras)
+    _register_table1(sub, parents=[quiet])
+    _register_simulate(sub, parents=[quiet])
+    _register_cameras(sub, parents=[quiet])
     _cli_images.register(sub, parents=[quiet])
     _cli_design.register(sub, parents=[quiet])
     _cli_track.register(sub, parents=[quiet])

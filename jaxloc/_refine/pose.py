@@ -132,84 +132,114 @@ def _implicit_residuals(params, delta, args, static):
     return (f[:, None] * e).reshape(-1)
 
 
-@eqx.filter_jit
-def _refine_pose_impl(
-    T0, camera, X, uv, mask, sigma, loss_scale, *, solver, loss, max_steps, rtol, atol
-):
+def _clean_inputs(T0, X, uv, mask, sigma):
+    """Replace what the solve must not use by harmless values.
+
+    Returns `(T0, X, uv, weight, use, nonfinite)`: the start `T_cam_world` (identity if
+    not finite), the world points `X` `(n, 3)` (m; unused ones moved 1 m in front of the
+    start camera, where `project` is smooth, with zero weight), the pixels `uv` `(n, 2)`
+    (unused ones 0), the residual weights `1 / sigma` (1/px, 0 for unused points), the
+    used points `(n,)` and whether an unmasked input (or the start) holds NaN/inf.
+    """
     dtype = X.dtype
     finite = jnp.all(jnp.isfinite(X), axis=1) & jnp.all(jnp.isfinite(uv), axis=1)
     start_ok = jnp.all(jnp.isfinite(T0.wxyz_xyz))
     nonfinite = jnp.any(mask & ~finite) | ~start_ok
     use = mask & finite
-    count = jnp.sum(use)
     X = jnp.where(use[:, None], X, 0.0)
     uv = jnp.where(use[:, None], uv, 0.0)
     sigma = jnp.asarray(sigma, dtype)
     weight = jnp.where(use, 1.0 / sigma, 0.0).astype(dtype)
     T0 = where_pose(start_ok, T0, identity_like(dtype))
     T0 = jaxlie.SE3(T0.wxyz_xyz.astype(dtype))
-    # Masked points sit in front of the camera with zero weight: they contribute nothing,
-    # and `project` stays smooth there.
     ahead = apply(inverse(T0), jnp.array([0.0, 0.0, 1.0], dtype))
     X = jnp.where(use[:, None], X, ahead)
-    c = jnp.asarray(loss_scale, dtype)
-    if solver in ("lm", "gn"):
-        # The loop is not differentiated: `implicit_step` carries the derivatives.
-        T0s, cam_s, Xs, uvs, ws, cs = jax.tree.map(
-            jax.lax.stop_gradient, (T0, camera, X, uv, weight, c)
-        )
-        out = levenberg_marquardt(
-            lambda x: _pose_model(x, cam_s, Xs, uvs, ws, cs, loss),
-            rplus_params,
-            lambda x: jnp.max(jnp.abs(x[4:])),
-            T0s.wxyz_xyz,
-            num_unknowns=6,
-            max_steps=max_steps,
-            rtol=rtol,
-            atol=atol,
-            active=(count >= 3) & ~nonfinite,
-            damped=solver == "lm",
-            lam0=1e-3 if solver == "lm" else 0.0,
-            final_gauss_newton=True,
-        )
-        num_steps, converged = out.num_steps, out.converged
-        camera_dyn, camera_static = eqx.partition(camera, eqx.is_inexact_array)
-        step = implicit_step(
-            _implicit_residuals, 6, (loss, camera_static), out.x,
-            (camera_dyn, X, uv, weight, c),
-        )  # fmt: skip
-        pose = rplus(jaxlie.SE3(out.x), step)
-        result = RESULTS.where(
-            converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached
-        )
-    else:
-        fn = ft.partial(_pose_residuals, loss=loss)
-        sol = optx.least_squares(
-            fn,
-            optx_solver(solver.removeprefix("optx-"), rtol, atol),
-            jnp.zeros(6, dtype),
-            args=(T0, camera, X, uv, weight, c),
-            max_steps=max_steps,
-            throw=False,
-        )
-        pose = rplus(T0, sol.value)
-        num_steps = sol.stats["num_steps"]
-        result = RESULTS.promote(sol.result)
-    # First-order covariance at the solution (Gaussian model, no robust weights):
-    # cov(delta) = (J^T J)^-1 with J the chain-rule Jacobian of the sigma-whitened
-    # residuals, delta the tangent of T_cam_world around the refined pose.
+    return T0, X, uv, weight, use, nonfinite
+
+
+def _solve_own(T0, camera, X, uv, weight, c, active, *, solver, loss, max_steps, rtol, atol):
+    """jaxloc's LM (`solver="lm"`) or Gauss--Newton (`"gn"`) from `T0` (`T_cam_world`),
+    then one implicit step that carries the derivatives (the loop is not differentiated).
+    Returns `(pose, num_steps, result)`."""
+    T0s, cam_s, Xs, uvs, ws, cs = jax.tree.map(
+        jax.lax.stop_gradient, (T0, camera, X, uv, weight, c)
+    )
+    out = levenberg_marquardt(
+        lambda x: _pose_model(x, cam_s, Xs, uvs, ws, cs, loss),
+        rplus_params,
+        lambda x: jnp.max(jnp.abs(x[4:])),
+        T0s.wxyz_xyz,
+        num_unknowns=6,
+        max_steps=max_steps,
+        rtol=rtol,
+        atol=atol,
+        active=active,
+        damped=solver == "lm",
+        lam0=1e-3 if solver == "lm" else 0.0,
+        final_gauss_newton=True,
+    )
+    camera_dyn, camera_static = eqx.partition(camera, eqx.is_inexact_array)
+    step = implicit_step(
+        _implicit_residuals, 6, (loss, camera_static), out.x,
+        (camera_dyn, X, uv, weight, c),
+    )  # fmt: skip
+    pose = rplus(jaxlie.SE3(out.x), step)
+    result = RESULTS.where(out.converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
+    return pose, out.num_steps, result
+
+
+def _solve_optx(T0, camera, X, uv, weight, c, *, solver, loss, max_steps, rtol, atol):
+    """optimistix's LM (`solver="optx-lm"`) or Gauss--Newton (`"optx-gn"`) over the
+    tangent at `T0` (`T_cam_world`). Returns `(pose, num_steps, result)`."""
+    sol = optx.least_squares(
+        ft.partial(_pose_residuals, loss=loss),
+        optx_solver(solver.removeprefix("optx-"), rtol, atol),
+        jnp.zeros(6, X.dtype),
+        args=(T0, camera, X, uv, weight, c),
+        max_steps=max_steps,
+        throw=False,
+    )
+    return rplus(T0, sol.value), sol.stats["num_steps"], RESULTS.promote(sol.result)
+
+
+def _covariance(pose, camera, X, uv, weight, c):
+    """First-order covariance `(6, 6)` of the tangent `(v, omega)` at `pose` (Gaussian
+    model, no robust weights): `(J^T J)^-1`, J the chain-rule Jacobian of the
+    sigma-whitened residuals; and whether `J^T J` was invertible."""
     _, J = _residuals_and_jacobian(pose, camera, X, uv, weight, c, None)
-    J = J.reshape(-1, 6)
-    cov, cov_ok = unrolled_spd_inverse(gram(J))
-    e = _point_residuals(pose, camera, X, uv, use.astype(dtype))
-    sq = jnp.sum(e * e) / jnp.maximum(count, 1).astype(dtype)
+    return unrolled_spd_inverse(gram(J.reshape(-1, 6)))
+
+
+def _status(result, cov_ok, pose, camera, X, use, count, nonfinite):
+    """The solver's `result`, overridden by the first failure in the order of
+    [`jaxloc.refine_overhead_pose`][]'s docstring (read last to first here)."""
     result = RESULTS.where(cov_ok, result, RESULTS.degenerate_configuration)
     in_front = jnp.all(camera.projectable(_camera_points(pose, X)[1]) | ~use)
     result = RESULTS.where(
         jnp.all(jnp.isfinite(pose.wxyz_xyz)) & in_front, result, RESULTS.no_valid_solution
     )
     result = RESULTS.where(count < 3, RESULTS.too_few_points, result)
-    result = RESULTS.where(nonfinite, RESULTS.nonfinite_observation, result)
+    return RESULTS.where(nonfinite, RESULTS.nonfinite_observation, result)
+
+
+@eqx.filter_jit
+def _refine_pose_impl(
+    T0, camera, X, uv, mask, sigma, loss_scale, *, solver, loss, max_steps, rtol, atol
+):
+    dtype = X.dtype
+    T0, X, uv, weight, use, nonfinite = _clean_inputs(T0, X, uv, mask, sigma)
+    count = jnp.sum(use)
+    c = jnp.asarray(loss_scale, dtype)
+    options = dict(solver=solver, loss=loss, max_steps=max_steps, rtol=rtol, atol=atol)
+    if solver in ("lm", "gn"):
+        active = (count >= 3) & ~nonfinite
+        pose, num_steps, result = _solve_own(T0, camera, X, uv, weight, c, active, **options)
+    else:
+        pose, num_steps, result = _solve_optx(T0, camera, X, uv, weight, c, **options)
+    cov, cov_ok = _covariance(pose, camera, X, uv, weight, c)
+    e = _point_residuals(pose, camera, X, uv, use.astype(dtype))
+    sq = jnp.sum(e * e) / jnp.maximum(count, 1).astype(dtype)
+    result = _status(result, cov_ok, pose, camera, X, use, count, nonfinite)
     success = result == RESULTS.successful
     pose = where_pose(success, pose, identity_like(dtype))
     stats = {

@@ -51,6 +51,129 @@ def _concrete(x: Any) -> np.ndarray | None:
         return None
 
 
+def _rig_or_cameras(rig, cameras, pixel_sigma, noise_model) -> Rig:
+    """`rig`, or (if `None`) the [`jaxloc.Rig`][] of the `cameras` `(overhead, ptz,
+    omni2, omni3)` (`None` ones the paper's presets); giving both is an error."""
+    if rig is not None:
+        if any(x is not None for x in cameras):
+            raise ValueError(
+                "`Scenario(rig=...)` holds the cameras: give either `rig` or the cameras "
+                "(`overhead`, `ptz`, `omni2`, `omni3`), not both."
+            )
+        return rig
+    overhead, ptz, omni2, omni3 = cameras
+    return Rig(
+        paper_overhead_camera() if overhead is None else overhead,
+        paper_ptz_camera() if ptz is None else ptz,
+        paper_omni_camera() if omni2 is None else omni2,
+        paper_omni_camera() if omni3 is None else omni3,
+        pixel_sigma=_as_float(pixel_sigma),
+        noise_model=noise_model,
+    )
+
+
+def _bad(name: str, msg: str):
+    raise ValueError(f"`Scenario({name}=...)` {msg}")
+
+
+def _check_config(scenario: "Scenario") -> None:
+    """The types of the surfaces, the rig and the static configuration."""
+    for name in ("ground", "ceiling"):
+        if not isinstance(getattr(scenario, name), AbstractSurface):
+            _bad(name, f"must be a surface; got {getattr(scenario, name)!r}.")
+    if not isinstance(scenario.rig, Rig):
+        _bad("rig", f"must be a Rig; got {type(scenario.rig).__name__}.")
+    if scenario.strategy not in STRATEGIES:
+        _bad("strategy", f"must be one of {STRATEGIES}; got {scenario.strategy!r}.")
+    k = scenario.move_candidates
+    if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
+        _bad("move_candidates", f"must be a positive integer; got {k!r}.")
+    for name in ("require_overhead", "require_ptz", "require_omni"):
+        if not isinstance(getattr(scenario, name), bool):
+            _bad(name, f"must be a bool; got {getattr(scenario, name)!r}.")
+
+
+#: Shape of each scalar-or-vector parameter of a `Scenario` (default `()`), and the sign
+#: its concrete value must have.
+_PARAMETER_SHAPES = {"headings": (3,), "overhead_xy": (2,)}
+_PARAMETER_SIGNS = {
+    "base": (lambda v: v > 0, "must be positive"),
+    "side": (lambda v: v > 0, "must be positive"),
+    "move_mean": (lambda v: v > 0, "must be positive"),
+    "move_std": (lambda v: v >= 0, "must be nonnegative"),
+    "min_separation": (lambda v: v >= 0, "must be nonnegative"),
+    "odometry_sigma_rel": (lambda v: v >= 0, "must be nonnegative"),
+}
+
+
+def _check_parameters(scenario: "Scenario") -> None:
+    """Shapes, finiteness and signs of the array parameters (values when concrete), and
+    that `base`, `side` make an isosceles triangle."""
+    for name in (
+        "base", "side", "headings", "overhead_xy", "overhead_heading", "move_mean",
+        "move_std", "min_separation", "odometry_sigma_rel",
+    ):  # fmt: skip
+        x = getattr(scenario, name)
+        shape = _PARAMETER_SHAPES.get(name, ())
+        if x.shape != shape:
+            _bad(name, f"must have shape {shape}; got shape {x.shape}.")
+        v = _concrete(x)
+        if v is not None and not np.all(np.isfinite(v)):
+            _bad(name, f"must be finite; got {v}.")
+    for name, (ok, msg) in _PARAMETER_SIGNS.items():
+        v = _concrete(getattr(scenario, name))
+        if v is not None and not ok(v):
+            _bad(name, f"{msg}; got {v}.")
+    b, s = _concrete(scenario.base), _concrete(scenario.side)
+    if b is not None and s is not None and not s > 0.5 * b:
+        _bad("side", f"must exceed `base / 2` = {0.5 * b} for a triangle; got {s}.")
+
+
+def _check_initial_xy(initial_xy) -> None:
+    """`initial_xy`: `None` or a finite, non-degenerate triangle `(3, 2)` (m)."""
+    if initial_xy is None:
+        return
+    if initial_xy.shape != (3, 2):
+        _bad("initial_xy", f"must have shape (3, 2) (C1, C2, C3); got shape "
+             f"{initial_xy.shape}.")  # fmt: skip
+    v = _concrete(initial_xy)
+    if v is not None:
+        if not np.all(np.isfinite(v)):
+            _bad("initial_xy", f"must be finite; got {v.tolist()}.")
+        u, w = v[1] - v[0], v[2] - v[0]
+        if abs(u[0] * w[1] - u[1] * w[0]) <= 1e-9:
+            _bad("initial_xy", f"must be a triangle (three non-collinear points); "
+                 f"got {v.tolist()}.")  # fmt: skip
+
+
+def _check_moves(moves, strategy: str) -> None:
+    """`moves`: `None` or the strategy's `(num_moves, 2)` finite (length > 0, direction)."""
+    if moves is None:
+        return
+    want = (num_moves(strategy), 2)
+    if moves.shape != want:
+        _bad("moves", f"must have shape {want} (length, direction) for the "
+             f"{strategy} strategy; got shape {moves.shape}.")  # fmt: skip
+    v = _concrete(moves)
+    if v is not None:
+        if not np.all(np.isfinite(v)):
+            _bad("moves", f"must be finite; got {v.tolist()}.")
+        if not np.all(v[:, 0] > 0):
+            _bad("moves", f"lengths (column 0) must be positive; got {v.tolist()}.")
+
+
+def _check_formation_sides(sides) -> None:
+    """`formation_sides`: `None` or three finite positive lengths (m)."""
+    if sides is None:
+        return
+    if sides.shape != (3,):
+        _bad("formation_sides", f"must have shape (3,) (three side lengths); got "
+             f"shape {sides.shape}.")  # fmt: skip
+    v = _concrete(sides)
+    if v is not None and not np.all(np.isfinite(v) & (v > 0)):
+        _bad("formation_sides", f"must be finite positive lengths (m); got {v.tolist()}.")
+
+
 class Scenario(eqx.Module):
     r"""One simulated localization setting: world, formation, cameras, moves and noise.
 
@@ -166,21 +289,7 @@ class Scenario(eqx.Module):
         self.headings = _as_float(headings)
         self.overhead_xy = _as_float(overhead_xy)
         self.overhead_heading = _as_float(overhead_heading)
-        if rig is None:
-            rig = Rig(
-                paper_overhead_camera() if overhead is None else overhead,
-                paper_ptz_camera() if ptz is None else ptz,
-                paper_omni_camera() if omni2 is None else omni2,
-                paper_omni_camera() if omni3 is None else omni3,
-                pixel_sigma=_as_float(pixel_sigma),
-                noise_model=noise_model,
-            )
-        elif any(x is not None for x in (overhead, ptz, omni2, omni3)):
-            raise ValueError(
-                "`Scenario(rig=...)` holds the cameras: give either `rig` or the cameras "
-                "(`overhead`, `ptz`, `omni2`, `omni3`), not both."
-            )
-        self.rig = rig
+        self.rig = _rig_or_cameras(rig, (overhead, ptz, omni2, omni3), pixel_sigma, noise_model)
         self.move_mean = _as_float(move_mean)
         self.move_std = _as_float(move_std)
         self.min_separation = _as_float(min_separation)
@@ -195,82 +304,11 @@ class Scenario(eqx.Module):
         self.formation_sides = None if formation_sides is None else _as_float(formation_sides)
 
     def __check_init__(self):
-        def bad(name, msg):
-            raise ValueError(f"`Scenario({name}=...)` {msg}")
-
-        for name in ("ground", "ceiling"):
-            if not isinstance(getattr(self, name), AbstractSurface):
-                bad(name, f"must be a surface; got {getattr(self, name)!r}.")
-        if not isinstance(self.rig, Rig):
-            bad("rig", f"must be a Rig; got {type(self.rig).__name__}.")
-        if self.strategy not in STRATEGIES:
-            bad("strategy", f"must be one of {STRATEGIES}; got {self.strategy!r}.")
-        if (
-            isinstance(self.move_candidates, bool)
-            or not isinstance(self.move_candidates, int | np.integer)
-            or self.move_candidates < 1
-        ):
-            bad("move_candidates", f"must be a positive integer; got {self.move_candidates!r}.")
-        for name in ("require_overhead", "require_ptz", "require_omni"):
-            if not isinstance(getattr(self, name), bool):
-                bad(name, f"must be a bool; got {getattr(self, name)!r}.")
-        shapes = {"headings": (3,), "overhead_xy": (2,)}
-        for name in (
-            "base", "side", "headings", "overhead_xy", "overhead_heading", "move_mean",
-            "move_std", "min_separation", "odometry_sigma_rel",
-        ):  # fmt: skip
-            x = getattr(self, name)
-            shape = shapes.get(name, ())
-            if x.shape != shape:
-                bad(name, f"must have shape {shape}; got shape {x.shape}.")
-            v = _concrete(x)
-            if v is not None and not np.all(np.isfinite(v)):
-                bad(name, f"must be finite; got {v}.")
-        checks = {
-            "base": (lambda v: v > 0, "must be positive"),
-            "side": (lambda v: v > 0, "must be positive"),
-            "move_mean": (lambda v: v > 0, "must be positive"),
-            "move_std": (lambda v: v >= 0, "must be nonnegative"),
-            "min_separation": (lambda v: v >= 0, "must be nonnegative"),
-            "odometry_sigma_rel": (lambda v: v >= 0, "must be nonnegative"),
-        }
-        for name, (ok, msg) in checks.items():
-            v = _concrete(getattr(self, name))
-            if v is not None and not ok(v):
-                bad(name, f"{msg}; got {v}.")
-        b, s = _concrete(self.base), _concrete(self.side)
-        if b is not None and s is not None and not s > 0.5 * b:
-            bad("side", f"must exceed `base / 2` = {0.5 * b} for a triangle; got {s}.")
-        if self.initial_xy is not None:
-            if self.initial_xy.shape != (3, 2):
-                bad("initial_xy", f"must have shape (3, 2) (C1, C2, C3); got shape "
-                    f"{self.initial_xy.shape}.")  # fmt: skip
-            v = _concrete(self.initial_xy)
-            if v is not None:
-                if not np.all(np.isfinite(v)):
-                    bad("initial_xy", f"must be finite; got {v.tolist()}.")
-                u, w = v[1] - v[0], v[2] - v[0]
-                if abs(u[0] * w[1] - u[1] * w[0]) <= 1e-9:
-                    bad("initial_xy", f"must be a triangle (three non-collinear points); "
-                        f"got {v.tolist()}.")  # fmt: skip
-        if self.moves is not None:
-            want = (num_moves(self.strategy), 2)
-            if self.moves.shape != want:
-                bad("moves", f"must have shape {want} (length, direction) for the "
-                    f"{self.strategy} strategy; got shape {self.moves.shape}.")  # fmt: skip
-            v = _concrete(self.moves)
-            if v is not None:
-                if not np.all(np.isfinite(v)):
-                    bad("moves", f"must be finite; got {v.tolist()}.")
-                if not np.all(v[:, 0] > 0):
-                    bad("moves", f"lengths (column 0) must be positive; got {v.tolist()}.")
-        if self.formation_sides is not None:
-            if self.formation_sides.shape != (3,):
-                bad("formation_sides", f"must have shape (3,) (three side lengths); got "
-                    f"shape {self.formation_sides.shape}.")  # fmt: skip
-            v = _concrete(self.formation_sides)
-            if v is not None and not np.all(np.isfinite(v) & (v > 0)):
-                bad("formation_sides", f"must be finite positive lengths (m); got {v.tolist()}.")
+        _check_config(self)
+        _check_parameters(self)
+        _check_initial_xy(self.initial_xy)
+        _check_moves(self.moves, self.strategy)
+        _check_formation_sides(self.formation_sides)
         check_surface("ground", self.ground)
         check_surface("ceiling", self.ceiling)
         check_ceiling_above_ground(self)

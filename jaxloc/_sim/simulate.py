@@ -14,6 +14,7 @@ cycle (DESIGN §1). Every sighting goes through the one projection path of
 `jaxloc._cycle.sightings` (marker offsets and camera offsets included).
 """
 
+import functools as ft
 import math
 
 import equinox as eqx
@@ -178,67 +179,83 @@ def _se3(R: Float[Array, "3 3"], p: Float[Array, "3"]) -> jaxlie.SE3:
     return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.from_matrix(R), p)
 
 
+def _move_candidates(scenario: Scenario, key, xy, movers_now, fixed_now, length_dist, dtype):
+    """Candidate formations `(K, 3, 2)` (m, `E` x-y) after one step's moves from `xy`
+    `(3, 2)`: the fixed move (`K = 1`; `fixed_now` `(3, 2)` is each robot's (length,
+    direction)), or `scenario.move_candidates` random ones, lengths (m) drawn from
+    `length_dist = (mean, std)`. Only `movers_now` `(3,)` move, each along its body
+    frame's heading rotated by the move's direction."""
+    R, _ = _robot_frames(scenario, xy)  # (3, 3, 3)
+    if scenario.moves is not None:
+        # The given moves, exactly: one candidate, never resampled (an infeasible one
+        # makes the cycle infeasible).
+        length, phi = fixed_now[None, :, 0], fixed_now[None, :, 1]  # (1, 3)
+    else:
+        K = scenario.move_candidates
+        mean, std = length_dist
+        k_len, k_dir = jr.split(key)
+        # Candidates are drawn for all three robots (cheap) and kept for the movers
+        # only, so that one scan body serves every step of both strategies.
+        length = jnp.maximum(mean + std * jr.normal(k_len, (K, 3), dtype), MIN_MOVE_LENGTH)
+        phi = jr.uniform(k_dir, (K, 3), dtype, -math.pi, math.pi)
+    d = jnp.cos(phi)[..., None] * R[None, :, :, 0] + jnp.sin(phi)[..., None] * R[None, :, :, 1]
+    new = xy[None] + length[..., None] * d[..., :2]  # (K, 3, 2)
+    return jnp.where(movers_now[None, :, None], new, xy[None])
+
+
+def _choose_candidate(scenario: Scenario, cands, feasible, dtype):
+    """Index of the candidate formation to move to, among `cands` `(K, 3, 2)` with
+    feasibility `feasible` `(K,)`: the fixed move, the first feasible one, or (formation
+    keeping) the feasible one whose sorted sides are nearest `formation_sides`."""
+    if scenario.moves is not None:
+        return 0
+    if scenario.formation_sides is None:
+        return jnp.argmax(feasible)
+    sides = jnp.sort(xy_sides(cands), axis=-1)
+    keep = jnp.sort(scenario.formation_sides.astype(dtype))[None]
+    change = jnp.sum((sides - keep) ** 2, -1)
+    return jnp.argmin(jnp.where(feasible, change, jnp.inf))
+
+
+def _move_step(scenario: Scenario, R_over, p_over, length_dist, dtype, carry, inputs):
+    """One step of `_draw_moves`' scan: move from the formation `xy` `(3, 2)` to a chosen
+    candidate; carry `(xy, feasible)`, output `(xy, sightings in view)`."""
+    xy, feasible = carry
+    step_key, movers_now, first, fixed_now = inputs
+    cands = _move_candidates(scenario, step_key, xy, movers_now, fixed_now, length_dist, dtype)
+    # The current formation is checked too: that is the initial formation's check at
+    # the first step, at the cost of one extra candidate.
+    mask, over, mutual = _formations_ok(
+        scenario, jnp.concatenate([xy[None], cands]), R_over, p_over
+    )
+    best = _choose_candidate(scenario, cands, mask[1:], dtype)
+    xy = cands[best]
+    feasible = feasible & mask[1 + best] & (mask[0] | ~first)
+    # Sightings of the current and of the chosen formation, reused for the pixels.
+    vis = (over[0], mutual[0], over[1 + best], mutual[1 + best])
+    return (xy, feasible), (xy, vis)
+
+
 def _draw_moves(scenario: Scenario, key, xy0, R_over, p_over, dtype):
     """Every step's formation after the strategy's moves (branch-free resampling, or the
     fixed moves), `(steps, 3, 2)`, whether every formation is feasible, and the sightings
     in view at every step `(overhead (steps, 3), mutual (steps, 3, 3))`."""
     strategy = scenario.strategy
     steps, movers, starts = num_steps(strategy), moving_robot(strategy), move_start_step(strategy)
-    K = scenario.move_candidates
     # Which robots move at each step, (steps - 1, 3): one (sequential) or two (concurrent).
     mover_mask = np.zeros((steps - 1, 3), dtype=bool)
     mover_mask[starts, movers] = True
-    mean = scenario.move_mean.astype(dtype)
-    std = scenario.move_std.astype(dtype)
-    fixed = scenario.moves is not None  # static: the pytree structure decides
-    if fixed:
+    length_dist = (scenario.move_mean.astype(dtype), scenario.move_std.astype(dtype))
+    if scenario.moves is not None:  # static: the pytree structure decides
         # (length, direction) of each robot at each step (zeros for robots that stay).
         fixed_moves = jnp.zeros((steps - 1, 3, 2), dtype).at[starts, movers].set(
             scenario.moves.astype(dtype)
         )
     else:
         fixed_moves = None  # no scan input: the random path's program is unchanged
-
-    def one_step(carry, inputs):
-        xy, feasible = carry
-        step_key, movers_now, first, fixed_now = inputs
-        R, _ = _robot_frames(scenario, xy)  # (3, 3, 3)
-        if fixed:
-            # The given moves, exactly: one candidate, never resampled (an infeasible one
-            # makes the cycle infeasible).
-            length, phi = fixed_now[None, :, 0], fixed_now[None, :, 1]  # (1, 3)
-        else:
-            k_len, k_dir = jr.split(step_key)
-            # Candidates are drawn for all three robots (cheap) and kept for the movers
-            # only, so that one scan body serves every step of both strategies.
-            length = jnp.maximum(mean + std * jr.normal(k_len, (K, 3), dtype), MIN_MOVE_LENGTH)
-            phi = jr.uniform(k_dir, (K, 3), dtype, -math.pi, math.pi)
-        d = jnp.cos(phi)[..., None] * R[None, :, :, 0] + jnp.sin(phi)[..., None] * R[None, :, :, 1]
-        new = xy[None] + length[..., None] * d[..., :2]  # (K, 3, 2)
-        cands = jnp.where(movers_now[None, :, None], new, xy[None])
-        # The current formation is checked too: that is the initial formation's check at
-        # the first step, at the cost of one extra candidate.
-        mask, over, mutual = _formations_ok(
-            scenario, jnp.concatenate([xy[None], cands]), R_over, p_over
-        )
-        if fixed:
-            best = 0
-        elif scenario.formation_sides is None:
-            best = jnp.argmax(mask[1:])
-        else:  # formation keeping: the feasible candidate nearest the formation's sides
-            sides = jnp.sort(xy_sides(cands), axis=-1)
-            keep = jnp.sort(scenario.formation_sides.astype(dtype))[None]
-            change = jnp.sum((sides - keep) ** 2, -1)
-            best = jnp.argmin(jnp.where(mask[1:], change, jnp.inf))
-        xy = cands[best]
-        feasible = feasible & mask[1 + best] & (mask[0] | ~first)
-        # Sightings of the current and of the chosen formation, reused for the pixels.
-        vis = (over[0], mutual[0], over[1 + best], mutual[1 + best])
-        return (xy, feasible), (xy, vis)
-
     first = np.arange(steps - 1) == 0
     (_, feasible), (xy_moved, vis) = jax.lax.scan(
-        one_step,
+        ft.partial(_move_step, scenario, R_over, p_over, length_dist, dtype),
         (xy0, jnp.array(True)),
         (jr.split(key, steps - 1), jnp.asarray(mover_mask), jnp.asarray(first), fixed_moves),
     )

@@ -67,19 +67,27 @@ def _ratio_candidates(p_before: Float[Array, "2 3"], p_after: Float[Array, "2 3"
     valid = (roots > 0.05) & (roots < 20.0)
     return jnp.where(valid, roots, 1.0), valid
 
-def _concurrent_cost_and_jac(s, P, d, w):
-    """Weighted odometry residuals of the concurrent strategy and their Jacobian."""
+def _move_lengths(s: Float[Array, "3"], P: Float[Array, "3 3 3"]) -> Float[Array, "4"]:
+    """Length (m) of each of the concurrent strategy's four moves, in move order, with the
+    formations `P` (step, robot, xyz; unit scale) scaled by `s` (one scale per step)."""
     starts, movers = move_start_step("concurrent"), moving_robot("concurrent")
+    return jnp.stack(
+        [
+            _distance(s[a + 1] * P[a + 1, r], s[a] * P[a, r])
+            for a, r in zip(starts.tolist(), movers.tolist())
+        ]
+    )
+
+
+def _concurrent_cost_and_jac(s, P, d, w):
+    """Weighted odometry residuals of the concurrent strategy `(4,)` and their Jacobian
+    `(4, 3)` with respect to the scales `s`."""
 
     def residuals(s):
-        return jnp.stack(
-            [
-                jnp.sqrt(w[m]) * (_distance(s[a + 1] * P[a + 1, r], s[a] * P[a, r]) - d[m])
-                for m, (a, r) in enumerate(zip(starts.tolist(), movers.tolist()))
-            ]
-        )
+        return jnp.sqrt(w) * (_move_lengths(s, P) - d)
 
     return residuals(s), jax.jacfwd(residuals)(s)
+
 
 def _overhead_candidates(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     """The overhead camera's view of the concurrent cycle at unit first-formation scale.
@@ -177,6 +185,62 @@ def _overhead_misfit(view, rho):
 
     return jnp.where(jnp.any(valid), jax.vmap(misfit)(rho), 0.0)
 
+def _scale_ratio_candidates(obs: CycleObservations, P: Float[Array, "3 3 3"], d, w):
+    """Candidate scale ratios `(1, s1/s0, s2/s0)` `(13, 3)` and which are allowed `(13,)`:
+    the 9 combinations of the odometry quadratics' roots, then the 4 the overhead camera
+    sees from each P3P pose; and the overhead `view` with its refined poses."""
+    # moves: [C2 0->1, C3 0->1, C2 1->2, C3 1->2]
+    r01, ok01 = _ratio_candidates(P[0, 1:], P[1, 1:], d[:2], w[:2])
+    r12, ok12 = _ratio_candidates(P[1, 1:], P[2, 1:], d[2:], w[2:])
+    combos = np.array(list(it.product(range(3), range(3))))
+    view = _overhead_candidates(obs, P)
+    poses_overhead, rho_overhead = _overhead_ratios(view)
+    view = (poses_overhead, *view[1:])  # score every candidate from the refined poses
+    rho = jnp.concatenate([
+        jnp.stack(
+            [jnp.ones(len(combos)), r01[combos[:, 0]], r01[combos[:, 0]] * r12[combos[:, 1]]],
+            axis=1,
+        ),
+        rho_overhead,
+    ])
+    allowed = jnp.concatenate([ok01[combos[:, 0]] & ok12[combos[:, 1]], view[1]])
+    return rho, allowed, view
+
+
+def _fit_candidate(rho: Float[Array, "3"], P, d, w):
+    """Two scale sets `(2, 3)` from the ratios `rho` and their odometry costs `(2,)`: the
+    overall scale fitted by linear least squares, then 6 Gauss--Newton steps on all three
+    scales (a step that makes a scale non-positive is refused)."""
+    q = _move_lengths(rho, P)
+    s0 = jnp.sum(w * d * q) / jnp.maximum(jnp.sum(w * q * q), 1e-30)
+    s = s0 * rho
+    res, _ = _concurrent_cost_and_jac(s, P, d, w)
+    fixed = (s, jnp.sum(res**2))
+    s = _gauss_newton(
+        lambda s: _concurrent_cost_and_jac(s, P, d, w), s, steps=6,
+        lam=1e-12, retract=lambda s, step: jnp.where(jnp.all(s + step > 0), s + step, s),
+    )  # fmt: skip
+    res, _ = _concurrent_cost_and_jac(s, P, d, w)
+    return jnp.stack([fixed[0], s]), jnp.stack([fixed[1], jnp.sum(res**2)])
+
+
+def _best_and_runner_up(s_all: Float[Array, "k 3"], score, cost):
+    """The lowest-`score` scale set and the best-scoring one whose scales differ from it
+    by more than `_DISTINCT_LOG_SCALE` (another local minimum for a refinement to try).
+    Returns `(scales, ok, runner_up, runner_up_ok)`; failures fall back to ones / the
+    winner."""
+    best = jnp.argmin(score)
+    scales = s_all[best]
+    ok = jnp.isfinite(cost[best]) & jnp.all(jnp.isfinite(scales))
+    scales = jnp.where(ok, scales, 1.0)
+    gap = jnp.max(jnp.abs(jnp.log(jnp.abs(s_all) / scales[None])), axis=1)
+    other_score = jnp.where(gap > _DISTINCT_LOG_SCALE, score, jnp.inf)
+    other = jnp.argmin(other_score)
+    runner_up_ok = ok & jnp.isfinite(other_score[other]) & jnp.all(jnp.isfinite(s_all[other]))
+    runner_up = jnp.where(runner_up_ok, s_all[other], scales)
+    return scales, ok, runner_up, runner_up_ok
+
+
 def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     """Scales `(s0, s1, s2)` of the three formations from the four odometry distances.
 
@@ -193,43 +257,8 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     the winner's by more than `_DISTINCT_LOG_SCALE`, another start for a refinement."""
     d, w_abs = obs.odometry, odometry_weights(obs)
     w = w_abs / jnp.max(w_abs)
-    # moves: [C2 0->1, C3 0->1, C2 1->2, C3 1->2]
-    r01, ok01 = _ratio_candidates(P[0, 1:], P[1, 1:], d[:2], w[:2])
-    r12, ok12 = _ratio_candidates(P[1, 1:], P[2, 1:], d[2:], w[2:])
-    combos = np.array(list(it.product(range(3), range(3))))
-    view = _overhead_candidates(obs, P)
-    poses_overhead, rho_overhead = _overhead_ratios(view)
-    view = (poses_overhead, *view[1:])  # score every candidate from the refined poses
-    rho = jnp.concatenate([
-        jnp.stack(
-            [jnp.ones(len(combos)), r01[combos[:, 0]], r01[combos[:, 0]] * r12[combos[:, 1]]],
-            axis=1,
-        ),
-        rho_overhead,
-    ])
-    allowed = jnp.concatenate([ok01[combos[:, 0]] & ok12[combos[:, 1]], view[1]])
-    starts, movers = move_start_step("concurrent"), moving_robot("concurrent")
-
-    def init_and_refine(rho):
-        q = jnp.stack(
-            [
-                _distance(rho[a + 1] * P[a + 1, r], rho[a] * P[a, r])
-                for a, r in zip(starts.tolist(), movers.tolist())
-            ]
-        )
-        s0 = jnp.sum(w * d * q) / jnp.maximum(jnp.sum(w * q * q), 1e-30)
-        s = s0 * rho
-        res, _ = _concurrent_cost_and_jac(s, P, d, w)
-        fixed = (s, jnp.sum(res**2))
-        # Gauss-Newton on the odometry; a step that makes a scale non-positive is refused.
-        s = _gauss_newton(
-            lambda s: _concurrent_cost_and_jac(s, P, d, w), s, steps=6,
-            lam=1e-12, retract=lambda s, step: jnp.where(jnp.all(s + step > 0), s + step, s),
-        )  # fmt: skip
-        res, _ = _concurrent_cost_and_jac(s, P, d, w)
-        return jnp.stack([fixed[0], s]), jnp.stack([fixed[1], jnp.sum(res**2)])
-
-    s_all, cost = jax.vmap(init_and_refine)(rho)
+    rho, allowed, view = _scale_ratio_candidates(obs, P, d, w)
+    s_all, cost = jax.vmap(ft.partial(_fit_candidate, P=P, d=d, w=w))(rho)
     s_all, cost = s_all.reshape(-1, 3), cost.reshape(-1)
     allowed = jnp.repeat(allowed, 2) & jnp.all(s_all > 0, axis=1)
     cost = jnp.where(allowed & jnp.isfinite(cost), cost, jnp.inf)
@@ -239,24 +268,8 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     misfit = _overhead_misfit(view, s_all / s_all[:, :1])  # ratios to s0
     score = cost * jnp.max(w_abs) + misfit / _NOMINAL_BEARING_SIGMA**2
     score = jnp.where(jnp.any(jnp.isfinite(score)), score, cost)
-    best = jnp.argmin(score)
-    scales = s_all[best]
-    ok = jnp.isfinite(cost[best]) & jnp.all(jnp.isfinite(scales))
-    scales = jnp.where(ok, scales, 1.0)
-    # The runner-up: the best-scoring candidate whose scales differ from the winner's by
-    # more than `_DISTINCT_LOG_SCALE` (another local minimum for a refinement to try).
-    gap = jnp.max(jnp.abs(jnp.log(jnp.abs(s_all) / scales[None])), axis=1)
-    other_score = jnp.where(gap > _DISTINCT_LOG_SCALE, score, jnp.inf)
-    other = jnp.argmin(other_score)
-    runner_up_ok = ok & jnp.isfinite(other_score[other]) & jnp.all(jnp.isfinite(s_all[other]))
-    runner_up = jnp.where(runner_up_ok, s_all[other], scales)
-    lengths = jnp.stack(
-        [
-            _distance(scales[a + 1] * P[a + 1, r], scales[a] * P[a, r])
-            for a, r in zip(starts.tolist(), movers.tolist())
-        ]
-    )
-    rms = jnp.sqrt(jnp.mean((lengths - d) ** 2))
+    scales, ok, runner_up, runner_up_ok = _best_and_runner_up(s_all, score, cost)
+    rms = jnp.sqrt(jnp.mean((_move_lengths(scales, P) - d) ** 2))
     return scales, ok, rms, runner_up, runner_up_ok
 
 

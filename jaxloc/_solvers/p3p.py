@@ -174,6 +174,123 @@ def _pose_from_triangles(points_world, points_cam) -> Float[Array, "7"]:
     return jnp.concatenate([jaxlie.SO3.from_matrix(R).wxyz, t])
 
 
+def _cosines_and_distances(X: Float[Array, "3 3"], y: Float[Array, "3 3"]):
+    """`(a, b)`: squared distances `(a12, a13, a23)` (m^2) between the world points `X`
+    and cosines `(b12, b13, b23)` between their unit bearings `y`, each shape `(3,)`."""
+    dot = lambda u, v: jnp.sum(u * v)  # noqa: E731  (element-wise under vmap)
+    b = jnp.stack([dot(y[0], y[1]), dot(y[0], y[2]), dot(y[1], y[2])])  # b12, b13, b23
+    d12, d13, d23 = X[0] - X[1], X[0] - X[2], X[1] - X[2]
+    a = jnp.stack([dot(d12, d12), dot(d13, d13), dot(d23, d23)])  # a12, a13, a23
+    return a, b
+
+
+def _singular_form(a12, a13, a23, b12, b13, b23):
+    r"""`(D0, g)`: the singular combination `D0` (3x3) of the quadratic forms `D1`, `D2`
+    of the distance equations and the cubic's root `g` that makes it singular, from the
+    squared distances `a_ij` (m^2) and bearing cosines `b_ij` (scalars).
+
+    $D_0 = D_1 + g D_2$, or $D_2 + g D_1$ when $|\det D_2| < |\det D_1|$ (the cubic is
+    then solved in $1/\gamma$, to avoid dividing by a vanishing $\det D_2$).
+    """
+    zero = jnp.zeros_like(a12)
+    tiny = jnp.finfo(a12.dtype).tiny
+    # lam^T M_ij lam = lam_i^2 + lam_j^2 - 2 b_ij lam_i lam_j
+    M12 = jnp.array([[1.0, -b12, zero], [-b12, 1.0, zero], [zero, zero, zero]])
+    M13 = jnp.array([[1.0, zero, -b13], [zero, zero, zero], [-b13, zero, 1.0]])
+    M23 = jnp.array([[zero, zero, zero], [zero, 1.0, -b23], [zero, -b23, 1.0]])
+    D1 = a23 * M12 - a12 * M23
+    D2 = a23 * M13 - a13 * M23
+    # det(D1 + g D2) = det D1 + g tr(adj(D1) D2) + g^2 tr(D1 adj(D2)) + g^3 det D2.
+    k3 = det3(D2)
+    # trace(A B) = sum(A * B^T): element-wise, no batched `dot` under `vmap`.
+    k2 = jnp.sum(D1 * adjugate3(D2)[0].T)
+    k1 = jnp.sum(adjugate3(D1)[0] * D2.T)
+    k0 = det3(D1)
+    # Solve in g (D0 = D1 + g D2) or in 1/g (D0 = D2 + mu D1), whichever has the larger
+    # leading coefficient: avoids dividing by a vanishing det D2.
+    use_g = jnp.abs(k3) >= jnp.abs(k0)
+    lead = jnp.where(use_g, k3, k0)
+    lead = jnp.where(jnp.abs(lead) > tiny, lead, 1.0)
+    c2 = jnp.where(use_g, k2, k1) / lead
+    c1 = jnp.where(use_g, k1, k2) / lead
+    c0 = jnp.where(use_g, k0, k3) / lead
+    g = _cubic_real_root(c2, c1, c0)
+    return jnp.where(use_g, D1 + g * D2, D2 + g * D1), g
+
+
+def _plane_depths(n: Float[Array, "3"], a13, a23, b13, b23, real_split):
+    r"""The two depth triples `(2, 3)` on the plane `n . lam = 0` through the origin that
+    satisfy the distance equations, and whether each is a real positive root.
+
+    With `lam1 = w0 lam2 + w1 lam3` and `tau = lam2 / lam3`, `a23 * eq13 = a13 * eq23` is a
+    quadratic in `tau`; `lam3` then follows from `eq23` (`a_ij`: squared distances, m^2;
+    `b_ij`: bearing cosines). `real_split`: whether the plane is real, ANDed into the
+    validity.
+    """
+    eps, tiny = jnp.finfo(a13.dtype).eps, jnp.finfo(a13.dtype).tiny
+    w0, ok0 = _safe_div(-n[1], n[0], eps * 1e-3)
+    w1, _ = _safe_div(-n[2], n[0], eps * 1e-3)
+    A = a23 * w0 * w0 - a13
+    B = 2.0 * a23 * (w0 * w1 - b13 * w0) + 2.0 * a13 * b23
+    C = a23 * (w1 * w1 - 2.0 * b13 * w1 + 1.0) - a13
+    disc = B * B - 4.0 * A * C
+    q = -0.5 * (B + jnp.where(B >= 0, 1.0, -1.0) * safe_sqrt(disc))
+    tau1, ok1 = _safe_div(q, A, tiny)
+    tau2, ok2 = _safe_div(C, q, tiny)
+    tau = jnp.stack([tau1, tau2])
+    ok_tau = jnp.stack([ok1, ok2])
+    den = tau * tau - 2.0 * b23 * tau + 1.0
+    l3 = safe_sqrt(_safe_div(a23, den, tiny)[0])
+    lam = jnp.stack([(w0 * tau + w1) * l3, tau * l3, l3], axis=1)
+    return lam, real_split & ok0 & ok_tau & (disc >= 0) & (tau > 0) & (lam[:, 0] > 0)
+
+
+def _closed_form_depths(a: Float[Array, "3"], b: Float[Array, "3"]):
+    """Lambda Twist's closed form: up to four depth triples `(4, 3)` (m) along the
+    bearings, and which are real solutions `(4,)`."""
+    a12, a13, a23 = a[0], a[1], a[2]
+    b12, b13, b23 = b[0], b[1], b[2]
+    D0, g = _singular_form(a12, a13, a23, b12, b13, b23)
+    e1, e2, s1, s2 = _eig_known_zero(D0)
+    ratio, ok_ratio = _safe_div(-s2, s1, jnp.finfo(a.dtype).tiny)
+    real_split = ok_ratio & (ratio >= 0) & jnp.isfinite(g)
+    s = safe_sqrt(ratio)
+
+    def plane(sign):
+        # lam^T D0 lam = s1 (e1.lam - s e2.lam)(e1.lam + s e2.lam): plane normal n.
+        return _plane_depths(e1 - sign * s * e2, a13, a23, b13, b23, real_split)
+
+    lams, oks = jax.vmap(plane)(jnp.array([1.0, -1.0], dtype=a.dtype))
+    return lams.reshape(4, 3), oks.reshape(4)
+
+
+def _valid_depths(lams, oks, a, b):
+    """Candidates `(4,)` whose polished depths `lams` `(4, 3)` are positive, finite and
+    satisfy the distance equations to a relative `10 sqrt(eps)`."""
+    scale = jnp.max(a)
+    res = jax.vmap(_depth_residuals, in_axes=(0, None, None))(lams, a, b)
+    tol = jnp.sqrt(jnp.finfo(a.dtype).eps) * 10.0 * scale
+    return (
+        oks
+        & jnp.all(lams > 0, axis=1)
+        & jnp.all(jnp.abs(res) <= tol, axis=1)
+        & jnp.all(jnp.isfinite(lams), axis=1)
+        & jnp.isfinite(scale)
+        & (scale > 0)
+    )
+
+
+def _candidate_poses(X, y, lams, valid):
+    """`(wxyz_xyz (4, 7), valid (4,))`: the pose `T_cam_world` of each depth triple `lams`
+    `(4, 3)` (points `lams[k, i] * y[i]` in the camera frame), identity where invalid."""
+    lams = jnp.where(valid[:, None], lams, 1.0)
+    points_cam = lams[:, :, None] * y[None, :, :]
+    params = jax.vmap(_pose_from_triangles, in_axes=(None, 0))(X, points_cam)
+    identity = jnp.zeros(7, dtype=X.dtype).at[0].set(1.0)
+    ok_params = valid[:, None] & jnp.all(jnp.isfinite(params), axis=1, keepdims=True)
+    return jnp.where(ok_params, params, identity[None]), valid & ok_params[:, 0]
+
+
 def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3PSolution:
     r"""Camera pose from three world points and their unit bearings (Lambda Twist).
 
@@ -200,91 +317,10 @@ def p3p(points_world: Float[Array, "3 3"], bearings: Float[Array, "3 3"]) -> P3P
     dtype = jnp.result_type(points_world, bearings)
     X = points_world.astype(dtype)
     y = jax.vmap(lambda v: _safe_normalize(v)[0])(bearings.astype(dtype))
-    eps = jnp.finfo(dtype).eps
-    tiny = jnp.finfo(dtype).tiny
-
-    dot = lambda u, v: jnp.sum(u * v)  # noqa: E731  (element-wise under vmap)
-    b = jnp.stack([dot(y[0], y[1]), dot(y[0], y[2]), dot(y[1], y[2])])  # b12, b13, b23
-    d12, d13, d23 = X[0] - X[1], X[0] - X[2], X[1] - X[2]
-    a = jnp.stack([dot(d12, d12), dot(d13, d13), dot(d23, d23)])  # a12, a13, a23
-
-    def closed_form(a, b):
-        a12, a13, a23 = a[0], a[1], a[2]
-        b12, b13, b23 = b[0], b[1], b[2]
-        zero = jnp.zeros_like(a12)
-        # lam^T M_ij lam = lam_i^2 + lam_j^2 - 2 b_ij lam_i lam_j
-        M12 = jnp.array([[1.0, -b12, zero], [-b12, 1.0, zero], [zero, zero, zero]])
-        M13 = jnp.array([[1.0, zero, -b13], [zero, zero, zero], [-b13, zero, 1.0]])
-        M23 = jnp.array([[zero, zero, zero], [zero, 1.0, -b23], [zero, -b23, 1.0]])
-        D1 = a23 * M12 - a12 * M23
-        D2 = a23 * M13 - a13 * M23
-        # det(D1 + g D2) = det D1 + g tr(adj(D1) D2) + g^2 tr(D1 adj(D2)) + g^3 det D2.
-        k3 = det3(D2)
-        # trace(A B) = sum(A * B^T): element-wise, no batched `dot` under `vmap`.
-        k2 = jnp.sum(D1 * adjugate3(D2)[0].T)
-        k1 = jnp.sum(adjugate3(D1)[0] * D2.T)
-        k0 = det3(D1)
-        # Solve in g (D0 = D1 + g D2) or in 1/g (D0 = D2 + mu D1), whichever has the larger
-        # leading coefficient: avoids dividing by a vanishing det D2.
-        use_g = jnp.abs(k3) >= jnp.abs(k0)
-        lead = jnp.where(use_g, k3, k0)
-        lead = jnp.where(jnp.abs(lead) > tiny, lead, 1.0)
-        c2 = jnp.where(use_g, k2, k1) / lead
-        c1 = jnp.where(use_g, k1, k2) / lead
-        c0 = jnp.where(use_g, k0, k3) / lead
-        g = _cubic_real_root(c2, c1, c0)
-        D0 = jnp.where(use_g, D1 + g * D2, D2 + g * D1)
-        e1, e2, s1, s2 = _eig_known_zero(D0)
-        ratio, ok_ratio = _safe_div(-s2, s1, tiny)
-        real_split = ok_ratio & (ratio >= 0) & jnp.isfinite(g)
-        s = safe_sqrt(ratio)
-
-        def plane(sign):
-            # lam^T D0 lam = s1 (e1.lam - s e2.lam)(e1.lam + s e2.lam): plane normal n.
-            n = e1 - sign * s * e2
-            w0, ok0 = _safe_div(-n[1], n[0], eps * 1e-3)
-            w1, _ = _safe_div(-n[2], n[0], eps * 1e-3)
-            # lam1 = w0 lam2 + w1 lam3; with tau = lam2 / lam3, a23 * eq13 = a13 * eq23.
-            A = a23 * w0 * w0 - a13
-            B = 2.0 * a23 * (w0 * w1 - b13 * w0) + 2.0 * a13 * b23
-            C = a23 * (w1 * w1 - 2.0 * b13 * w1 + 1.0) - a13
-            disc = B * B - 4.0 * A * C
-            q = -0.5 * (B + jnp.where(B >= 0, 1.0, -1.0) * safe_sqrt(disc))
-            tau1, ok1 = _safe_div(q, A, tiny)
-            tau2, ok2 = _safe_div(C, q, tiny)
-            tau = jnp.stack([tau1, tau2])
-            ok_tau = jnp.stack([ok1, ok2])
-            den = tau * tau - 2.0 * b23 * tau + 1.0
-            l3 = safe_sqrt(_safe_div(a23, den, tiny)[0])
-            lam = jnp.stack([(w0 * tau + w1) * l3, tau * l3, l3], axis=1)
-            ok = real_split & ok0 & ok_tau & (disc >= 0) & (tau > 0) & (lam[:, 0] > 0)
-            return lam, ok
-
-        lams, oks = jax.vmap(plane)(jnp.array([1.0, -1.0], dtype=a.dtype))
-        return lams.reshape(4, 3), oks.reshape(4)
-
-    lams, oks = closed_form(jax.lax.stop_gradient(a), jax.lax.stop_gradient(b))
+    a, b = _cosines_and_distances(X, y)
+    lams, oks = _closed_form_depths(jax.lax.stop_gradient(a), jax.lax.stop_gradient(b))
     lams = jax.lax.stop_gradient(lams)
     lams = jnp.where(oks[:, None] & jnp.all(jnp.isfinite(lams), axis=1, keepdims=True), lams, 1.0)
     lams = jax.vmap(_refine_depths, in_axes=(0, None, None))(lams, a, b)
-
-    # Validity after polishing: positive depths and small relative residuals.
-    scale = jnp.max(a)
-    res = jax.vmap(_depth_residuals, in_axes=(0, None, None))(lams, a, b)
-    tol = jnp.sqrt(eps) * 10.0 * scale
-    valid = (
-        oks
-        & jnp.all(lams > 0, axis=1)
-        & jnp.all(jnp.abs(res) <= tol, axis=1)
-        & jnp.all(jnp.isfinite(lams), axis=1)
-        & jnp.isfinite(scale)
-        & (scale > 0)
-    )
-    lams = jnp.where(valid[:, None], lams, 1.0)
-    points_cam = lams[:, :, None] * y[None, :, :]
-    params = jax.vmap(_pose_from_triangles, in_axes=(None, 0))(X, points_cam)
-    identity = jnp.zeros(7, dtype=dtype).at[0].set(1.0)
-    ok_params = valid[:, None] & jnp.all(jnp.isfinite(params), axis=1, keepdims=True)
-    params = jnp.where(ok_params, params, identity[None])
-    valid = valid & ok_params[:, 0]
+    params, valid = _candidate_poses(X, y, lams, _valid_depths(lams, oks, a, b))
     return P3PSolution(poses=jaxlie.SE3(wxyz_xyz=params), valid=valid)

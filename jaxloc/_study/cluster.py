@@ -162,47 +162,47 @@ def ray_runner(
     def run(chunks: Sequence[int], on_done: Callable[[], None]) -> Iterator[dict]:
         queue = list(chunks)
         refs: dict[int, Any] = {}  # chunk -> its task, submitted and not yet handed over
-        finished: set[int] = set()
-        nxt = 0
         while queue and len(refs) < max_in_flight:  # submitted at once, before iteration
             c = queue.pop(0)
             refs[c] = submit(c)
-
-        def iterate():
-            nonlocal nxt
-            try:
-                while nxt < len(chunks):
-                    want = chunks[nxt]
-                    while want not in finished:
-                        if not ray.is_initialized():  # else Ray's next call would start a
-                            # new local cluster (its auto-init)
-                            raise ClusterError("disconnected from the Ray cluster.")
-                        waiting = [r for c, r in refs.items() if c not in finished]
-                        ready, _ = ray.wait(waiting, num_returns=1, timeout=1.0)
-                        for c, r in refs.items():
-                            if r in ready:
-                                finished.add(c)
-                                on_done()
-                    arrays = ray.get(refs.pop(want))
-                    finished.discard(want)
-                    nxt += 1
-                    if queue:
-                        c = queue.pop(0)
-                        refs[c] = submit(c)
-                    yield arrays
-            except ray.exceptions.RayError as e:
-                if ray.is_initialized():
-                    for r in refs.values():
-                        ray.cancel(r, force=True)
-                raise ClusterError(
-                    f"a chunk task failed on the Ray cluster (a lost worker is retried "
-                    f"{max_retries} times, a Python error is not): "
-                    f"{' '.join(str(e).split())[:300]}"
-                ) from None
-
-        return iterate()
+        return _in_order(ray, chunks, queue, refs, submit, on_done, max_retries)
 
     return run
+
+
+def _in_order(ray, chunks, queue, refs, submit, on_done, max_retries) -> Iterator[dict]:
+    """Hand over the chunk tasks' results in the order of `chunks`, calling `on_done` as
+    each task finishes (in any order) and submitting the next of `queue` as each result
+    is handed over. `refs` maps each submitted chunk to its task (updated in place).
+    A task's failure cancels the others and raises `ClusterError`."""
+    finished: set[int] = set()
+    try:
+        for want in chunks:
+            while want not in finished:
+                if not ray.is_initialized():  # else Ray's next call would start a
+                    # new local cluster (its auto-init)
+                    raise ClusterError("disconnected from the Ray cluster.")
+                waiting = [r for c, r in refs.items() if c not in finished]
+                ready, _ = ray.wait(waiting, num_returns=1, timeout=1.0)
+                for c, r in refs.items():
+                    if r in ready:
+                        finished.add(c)
+                        on_done()
+            arrays = ray.get(refs.pop(want))
+            finished.discard(want)
+            if queue:
+                c = queue.pop(0)
+                refs[c] = submit(c)
+            yield arrays
+    except ray.exceptions.RayError as e:
+        if ray.is_initialized():
+            for r in refs.values():
+                ray.cancel(r, force=True)
+        raise ClusterError(
+            f"a chunk task failed on the Ray cluster (a lost worker is retried "
+            f"{max_retries} times, a Python error is not): "
+            f"{' '.join(str(e).split())[:300]}"
+        ) from None
 
 
 def run_study_on_ray(

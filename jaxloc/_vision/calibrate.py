@@ -36,6 +36,7 @@ from jaxtyping import Array, Float
 
 from .._cameras.files import camera_to_dict
 from .._cameras.models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera, ZoomTable
+from .markers import imread
 
 
 # --------------------------------------------------------------------------------------
@@ -64,17 +65,6 @@ def check_board(board: Any) -> tuple[int, int]:
             f"`board` must be two integers >= 2 (inner corners per row and column); got {board!r}."
         )
     return int(cols), int(rows)
-
-
-def _read_gray(path: str) -> np.ndarray:
-    if not os.path.isfile(path):
-        raise FileNotFoundError(f"Image file `{path}` does not exist.")
-    img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-    if img is None:
-        raise ValueError(
-            f"Image file `{path}` is not a readable image (corrupt or unknown format)."
-        )
-    return img
 
 
 def object_points(board: tuple[int, int], square: float) -> np.ndarray:
@@ -120,7 +110,7 @@ def _detect_all(images, board, window):
     for k, item in enumerate(images):
         if isinstance(item, (str, os.PathLike)):
             name = os.fspath(item)
-            img = _read_gray(name)
+            img = imread(name, cv2.IMREAD_GRAYSCALE)
         else:
             name, img = f"images[{k}]", item
         c = find_corners(img, board, window=window, name=name)
@@ -533,6 +523,100 @@ def omni_initial_guess(
     return float(cx0), float(cy0), gamma, T0
 
 
+def _check_omni_inputs(corners, obj, principal_point, focal_init, dist_init, fix_coefficients):
+    """Validate [`jaxloc.calibrate_omni_corners`][]' arrays and options (`ValueError`
+    naming the argument). Returns `(obj (n, 3), views)`, each view's pixels `(n, 2)`,
+    float64."""
+    obj = np.asarray(obj, np.float64)
+    if obj.ndim != 2 or obj.shape[1] != 3:
+        raise ValueError(f"`obj` must have shape (n, 3); got {obj.shape}.")
+    views = [np.asarray(c, np.float64).reshape(-1, 2) for c in corners]
+    if len(views) < 3:
+        raise ValueError(f"Omnidirectional calibration needs at least 3 views; got {len(views)}.")
+    for k, c in enumerate(views):
+        if c.shape[0] != obj.shape[0]:
+            raise ValueError(
+                f"`corners[{k}]` must have {obj.shape[0]} rows like `obj`; got {c.shape[0]}."
+            )
+    unknown = [c for c in fix_coefficients if c not in _OMNI_NAMES[5:]]
+    if isinstance(fix_coefficients, str) or unknown:
+        raise ValueError(
+            f"`fix_coefficients` must name some of {_OMNI_NAMES[5:]}; got {fix_coefficients!r}."
+        )
+    for arg, value, n in (("focal_init", focal_init, 2), ("dist_init", dist_init, 4),
+                          ("principal_point", principal_point, 2)):  # fmt: skip
+        if value is not None and (np.shape(value) != (n,) or not np.all(np.isfinite(value))):
+            raise ValueError(f"`{arg}` must be {n} finite numbers; got {value!r}.")
+    if focal_init is not None and not min(focal_init) > 0:
+        raise ValueError(f"`focal_init` must be positive (px); got {focal_init!r}.")
+    return obj, views
+
+
+def _omni_start(views, obj, image_size, principal_point, xi_init, focal_init, dist_init,
+                fix_skew):  # fmt: skip
+    """The start of the LM solve: `(theta0, f0, T0)`, the camera parameters `theta0`
+    (`xi`, then `fx, fy, cx, cy` divided by `f0` (px), `k1, k2, p1, p2`, and the skew / f0
+    unless `fix_skew`), the focal scale `f0` (px) and each board's pose `T_cam_board`
+    (wxyz_xyz `(7,)`), from [`omni_initial_guess`][] or the given `*_init` values."""
+    cx0, cy0, gamma, T0 = omni_initial_guess(views, obj, image_size, principal_point)
+    # From xi = 1 to xi_init: keep the image radius of the board's mean direction, so the
+    # start stays close (f scales with (z_s + xi)).
+    if focal_init is None and xi_init != 1.0:
+        zs = []
+        for Tv in T0:
+            zc = np.asarray(jaxlie.SE3(jnp.asarray(Tv)).translation())
+            zs.append(zc[2] / np.linalg.norm(zc))
+        zbar = float(np.mean(zs))
+        gamma = gamma * (zbar + xi_init) / (zbar + 1.0)
+    fx0, fy0 = (gamma, gamma) if focal_init is None else (float(v) for v in focal_init)
+    f0 = 0.5 * (fx0 + fy0)
+    dist0 = [0.0] * 4 if dist_init is None else [float(v) for v in dist_init]
+    theta0 = np.array([xi_init, fx0 / f0, fy0 / f0, cx0 / f0, cy0 / f0, *dist0], np.float64)
+    if not fix_skew:
+        theta0 = np.append(theta0, 0.0)
+    return theta0, f0, T0
+
+
+def _omni_free(n, fix_xi, fix_focal, fix_center, fix_distortion, fix_coefficients):
+    """Which of the `n` camera parameters (`_OMNI_NAMES`, then the skew) the solve moves."""
+    free = np.ones(n, bool)
+    free[0] = not fix_xi
+    free[1:3] = not fix_focal
+    free[3:5] = not fix_center
+    free[5:9] = not fix_distortion
+    for c in fix_coefficients:
+        free[_OMNI_NAMES.index(c)] = False
+    return free
+
+
+def _omni_errors(params, args, free, f0):
+    """Reprojection errors and parameter uncertainty at the solution `params`.
+
+    Returns `(rms, per_view, std)`: the RMS reprojection error over all corners and per
+    view (px), and the standard deviation of each camera parameter by name (px for the
+    focal lengths, centre and skew), `sigma^2 (J^T J)^-1` over the free parameters and the
+    board poses."""
+    _, deltas = params
+    weight = np.asarray(args[3])
+    J, r = _omni_jacobian(params, args)
+    J, r = np.asarray(J), np.asarray(r)  # (views * n * 2, params), (views, n, 2)
+    n_pts = int(weight.sum())
+    sq = (r**2).sum(-1)
+    rms = math.sqrt(sq.sum() / n_pts)
+    per_view = [math.sqrt(sq[v].sum() / max(weight[v].sum(), 1)) for v in range(len(weight))]
+    keep = np.concatenate([free, np.ones(deltas.size, bool)])
+    Jk = J[:, keep]
+    dof = max(2 * n_pts - Jk.shape[1], 1)
+    sigma2 = float((r**2).sum()) / dof
+    cov = sigma2 * np.linalg.pinv(Jk.T @ Jk)
+    std_k = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    std_theta = np.zeros(free.shape[0])
+    std_theta[free] = std_k[: int(free.sum())]
+    scale = np.array([1, f0, f0, f0, f0, 1, 1, 1, 1, f0])
+    std = {n: float(s * k) for n, s, k in zip((*_OMNI_NAMES, "skew"), std_theta, scale)}
+    return rms, per_view, std
+
+
 def calibrate_omni_corners(
     corners: list[np.ndarray],
     obj: np.ndarray,
@@ -584,52 +668,15 @@ def calibrate_omni_corners(
     **Returns:** a [`jaxloc.Calibration`][] with an [`jaxloc.OmniCamera`][] (elevation
     band left at the camera's default, -12..32 deg: set yours with `eqx.tree_at`).
     """
-    obj = np.asarray(obj, np.float64)
-    if obj.ndim != 2 or obj.shape[1] != 3:
-        raise ValueError(f"`obj` must have shape (n, 3); got {obj.shape}.")
-    views = [np.asarray(c, np.float64).reshape(-1, 2) for c in corners]
-    if len(views) < 3:
-        raise ValueError(f"Omnidirectional calibration needs at least 3 views; got {len(views)}.")
-    for k, c in enumerate(views):
-        if c.shape[0] != obj.shape[0]:
-            raise ValueError(
-                f"`corners[{k}]` must have {obj.shape[0]} rows like `obj`; got {c.shape[0]}."
-            )
-    unknown = [c for c in fix_coefficients if c not in _OMNI_NAMES[5:]]
-    if isinstance(fix_coefficients, str) or unknown:
-        raise ValueError(
-            f"`fix_coefficients` must name some of {_OMNI_NAMES[5:]}; got {fix_coefficients!r}."
-        )
-    for arg, value, n in (("focal_init", focal_init, 2), ("dist_init", dist_init, 4),
-                          ("principal_point", principal_point, 2)):  # fmt: skip
-        if value is not None and (np.shape(value) != (n,) or not np.all(np.isfinite(value))):
-            raise ValueError(f"`{arg}` must be {n} finite numbers; got {value!r}.")
-    if focal_init is not None and not min(focal_init) > 0:
-        raise ValueError(f"`focal_init` must be positive (px); got {focal_init!r}.")
+    obj, views = _check_omni_inputs(
+        corners, obj, principal_point, focal_init, dist_init, fix_coefficients
+    )
     w, h = image_size
-    cx0, cy0, gamma, T0 = omni_initial_guess(views, obj, (w, h), principal_point)
-    # From xi = 1 to xi_init: keep the image radius of the board's mean direction, so the
-    # start stays close (f scales with (z_s + xi)).
-    if focal_init is None and xi_init != 1.0:
-        zs = []
-        for Tv in T0:
-            zc = np.asarray(jaxlie.SE3(jnp.asarray(Tv)).translation())
-            zs.append(zc[2] / np.linalg.norm(zc))
-        zbar = float(np.mean(zs))
-        gamma = gamma * (zbar + xi_init) / (zbar + 1.0)
-    fx0, fy0 = (gamma, gamma) if focal_init is None else (float(v) for v in focal_init)
-    f0 = 0.5 * (fx0 + fy0)
-    dist0 = [0.0] * 4 if dist_init is None else [float(v) for v in dist_init]
-    theta0 = np.array([xi_init, fx0 / f0, fy0 / f0, cx0 / f0, cy0 / f0, *dist0], np.float64)
-    if not fix_skew:
-        theta0 = np.append(theta0, 0.0)
-    free = np.ones(theta0.shape[0], bool)
-    free[0] = not fix_xi
-    free[1:3] = not fix_focal
-    free[3:5] = not fix_center
-    free[5:9] = not fix_distortion
-    for c in fix_coefficients:
-        free[_OMNI_NAMES.index(c)] = False
+    theta0, f0, T0 = _omni_start(
+        views, obj, (w, h), principal_point, xi_init, focal_init, dist_init, fix_skew
+    )
+    free = _omni_free(theta0.shape[0], fix_xi, fix_focal, fix_center, fix_distortion,
+                      fix_coefficients)  # fmt: skip
     uv = np.stack([np.where(np.isfinite(c), c, 0.0) for c in views])
     weight = np.stack([np.all(np.isfinite(c), -1).astype(np.float64) for c in views])
     (theta, deltas), result, steps = _omni_solve(
@@ -638,23 +685,7 @@ def calibrate_omni_corners(
     )  # fmt: skip
     args = (jnp.asarray(np.stack(T0)), jnp.asarray(obj), jnp.asarray(uv), jnp.asarray(weight),
             f0, (int(w), int(h)), 0.0, jnp.asarray(free))  # fmt: skip
-    J, r = _omni_jacobian((theta, deltas), args)
-    J, r = np.asarray(J), np.asarray(r)  # (views * n * 2, params), (views, n, 2)
-    n_pts = int(weight.sum())
-    sq = (r**2).sum(-1)
-    rms = math.sqrt(sq.sum() / n_pts)
-    per_view = [math.sqrt(sq[v].sum() / max(weight[v].sum(), 1)) for v in range(len(views))]
-    # Parameter covariance: sigma^2 (J^T J)^-1 over the free parameters.
-    keep = np.concatenate([free, np.ones(deltas.size, bool)])
-    Jk = J[:, keep]
-    dof = max(2 * n_pts - Jk.shape[1], 1)
-    sigma2 = float((r**2).sum()) / dof
-    cov = sigma2 * np.linalg.pinv(Jk.T @ Jk)
-    std_k = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    std_theta = np.zeros(theta0.shape[0])
-    std_theta[free] = std_k[: int(free.sum())]
-    scale = np.array([1, f0, f0, f0, f0, 1, 1, 1, 1, f0])
-    std = {n: float(s * k) for n, s, k in zip((*_OMNI_NAMES, "skew"), std_theta, scale)}
+    rms, per_view, std = _omni_errors((theta, deltas), args, free, f0)
     theta = np.asarray(theta)
     skew = theta[9] * f0 if theta.shape[0] == 10 else 0.0
     camera = OmniCamera(theta[0], theta[1] * f0, theta[2] * f0, theta[3] * f0, theta[4] * f0,

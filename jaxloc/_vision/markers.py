@@ -171,17 +171,24 @@ def check_image(image: Any, where: str = "image") -> np.ndarray:
     return image
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
-    """Read a colour image file (BGR `uint8`); raise `FileNotFoundError` for a missing
-    file and `ValueError` naming the file for an unreadable or non-colour one."""
-    path = os.fspath(path)
+def imread(path: str, flags: int) -> np.ndarray:
+    """`cv2.imread(path, flags)`; raise `FileNotFoundError` for a missing file and
+    `ValueError` naming the file for an unreadable one."""
     if not os.path.isfile(path):
         raise FileNotFoundError(f"Image file `{path}` does not exist.")
-    img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    img = cv2.imread(path, flags)
     if img is None:
         raise ValueError(
             f"Image file `{path}` is not a readable image (corrupt or unknown format)."
         )
+    return img
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Read a colour image file (BGR `uint8`); raise `FileNotFoundError` for a missing
+    file and `ValueError` naming the file for an unreadable or non-colour one."""
+    path = os.fspath(path)
+    img = imread(path, cv2.IMREAD_UNCHANGED)
     if img.ndim == 2 or (img.ndim == 3 and img.shape[2] == 1):
         raise ValueError(
             f"Image file `{path}` is greyscale (shape {img.shape}); colour markers need a "
