@@ -297,5 +297,9 @@ def test_vmapped_gradient_of_refinement_agrees_between_solvers():
         )
         for solver in ("lm", "optx-kernel", "optx-lm")
     ]
-    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-8)
+    # At the default tolerances (1e-6) each loop stops within its tolerance of the minimum,
+    # where the implicit derivatives, taken in the kernel's local coordinates or in
+    # optimistix's chart, differ to first order in the gradient left (~1e-7 relative here;
+    # equal to rounding at 1e-9 tolerances: test_kernel_as_optimistix_solver_...).
+    np.testing.assert_allclose(grads[1], grads[0], rtol=1e-5)
     np.testing.assert_allclose(grads[2], grads[0], rtol=1e-5)
