@@ -81,8 +81,7 @@ def _enable_compile_cache() -> str | None:
     """Keep compiled XLA programs on disk between runs (JAX's persistent compilation
     cache), so that only a command's first run pays for compilation. The folder is
     `$JAXLOC_COMPILE_CACHE` (`off` disables it), else `$XDG_CACHE_HOME/jaxloc/xla` or
-    `~/.cache/jaxloc/xla`; a cache the user configured for JAX is left as it is. Every
-    compiled program is kept, however short its compilation."""
+    `~/.cache/jaxloc/xla`; a cache the user configured for JAX is left as it is."""
     import jax
 
     if jax.config.jax_compilation_cache_dir:
@@ -94,10 +93,6 @@ def _enable_compile_cache() -> str | None:
     if path.strip().lower() in ("", "0", "off", "none", "false"):
         return None
     jax.config.update("jax_compilation_cache_dir", path)
-    # Every program, not only those that took over a second to compile: a command
-    # compiles dozens of small ones (~0.1-0.9 s each), which JAX would compile again on
-    # every run.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return path
 
 
