@@ -39,7 +39,7 @@ from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_pl
 from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
 from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
-from .measurements import CycleData, normal_equations, unpack, whitened
+from .measurements import CycleData, normal_equations, pack, unpack, whitened
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -148,17 +148,6 @@ def _runner_up_chi2(rivals, T_over, data: CycleData, rig: Rig, strategy: str):
     return jnp.min(jnp.where(active & distinct & jnp.isfinite(chi2), chi2, jnp.inf))
 
 
-def _tangent_offset(T_place, T_over, T_place0, T_over0):
-    """The tangent `delta` (layout of `unpack`) with `unpack(delta, T_place0, T_over0)`
-    equal to `(T_place, T_over)`: each pose's `log(T0^-1 T)`."""
-
-    def log_between(a, b):
-        return (jaxlie.SE3(b).inverse() @ jaxlie.SE3(a)).log()
-
-    d = jax.vmap(log_between)(T_place[1:], T_place0[1:]).reshape(-1)
-    return jnp.concatenate([d, log_between(T_over, T_over0)])
-
-
 def end_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
     """End-of-cycle poses (C's optical frame, C1, C2, C3) of placements `T_place`."""
     return jnp.concatenate([T_over[None], T_place[placement_ids(strategy)[-1]]])
@@ -190,7 +179,7 @@ def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
     dp, dr = final_offsets(offset, P, O, strategy)
     if polished:
         own_dp, own_dr = _pose_differences(final_poses, end_poses(P, O, strategy))
-        offset = offset + _tangent_offset(T_place, T_over, P, O)
+        offset = offset + pack(T_place, T_over, P, O)
         moved = jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
         dp = dp + jnp.where(moved, own_dp, 0.0)
         dr = dr + jnp.where(moved, own_dr, 0.0)
