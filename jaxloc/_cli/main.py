@@ -4,6 +4,7 @@
 import argparse
 import contextlib
 import os
+import signal
 import sys
 import threading
 import time
@@ -483,6 +484,11 @@ def _call(func, args, threaded: bool) -> int:
     outcome: dict = {}
 
     def work():
+        # Ctrl-C is for the main thread alone: a SIGINT the kernel hands to this thread,
+        # or to the threads XLA starts from it (they inherit the mask), would set Python's
+        # flag without waking the main thread's wait.
+        if hasattr(signal, "pthread_sigmask"):  # POSIX
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             outcome["code"] = func(args)
         except BaseException as e:  # re-raised in the main thread
@@ -490,7 +496,8 @@ def _call(func, args, threaded: bool) -> int:
 
     worker = threading.Thread(target=work, name="jaxloc-command", daemon=True)
     worker.start()
-    worker.join()
+    while worker.is_alive():
+        worker.join(0.25)  # a timed wait: pending signal handlers run between waits
     if "error" in outcome:
         raise outcome["error"]
     return outcome["code"]
