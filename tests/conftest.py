@@ -18,6 +18,13 @@ _XLA_CACHE = os.path.abspath(
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", _XLA_CACHE)
 os.environ.setdefault("JAXLOC_COMPILE_CACHE", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+# The test processes (pytest-xdist's workers, the command-line and notebook subprocesses)
+# share that cache at once. A size limit turns on JAX's file lock around every read and
+# write of an entry, so no process reads an entry another is still writing. The limit
+# itself (64 GiB) is never reached.
+os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(64 * 2**30))
+_MAX_SIZE = int(os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"])
+jax.config.update("jax_compilation_cache_max_size", _MAX_SIZE)
 
 
 
