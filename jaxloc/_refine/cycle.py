@@ -131,7 +131,8 @@ def _implicit_residuals(x, theta, args, strategy):
 
 
 def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, loss=None):
-    """The least-squares kernel on a cycle: `(T_place, T_over, num_steps, converged)`.
+    """The least-squares kernel on a cycle: `(T_place, T_over, num_steps, converged,
+    cost)`, `cost` the (robust) cost at the solution (0 for an inactive problem).
     Residuals are whitened, so the predicted decrease is in chi-square units (see
     `levenberg_marquardt`'s `decrease_tol`); the damping starts at 1e-2, a prior
     precision of 100 per m^2 / rad^2. A robust `loss` makes each model evaluation one
@@ -150,7 +151,7 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, l
         lam0=1e-2,
         decrease_tol=_NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2,
     )
-    return out.x[0], out.x[1], out.num_steps, out.converged
+    return out.x[0], out.x[1], out.num_steps, out.converged, out.normal.cost
 
 
 def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, loss):
@@ -179,8 +180,7 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, los
         to = jnp.where(last, T_over_j[pick], start_over[lane])
         act = jnp.where(last, active & ~converged_j[pick], lanes[lane])
         budget = jnp.where(last, max_steps - n_first, n_first)
-        tp, to, k, conv = _lm(tp, to, data, rig, strategy, budget, rtol, atol, act, loss)
-        chi2 = whitened_cost(tp, to, data, rig, strategy, loss)
+        tp, to, k, conv, chi2 = _lm(tp, to, data, rig, strategy, budget, rtol, atol, act, loss)
         slots = (
             T_place_j.at[j].set(tp), T_over_j.at[j].set(to), steps_j.at[j].set(k),
             converged_j.at[j].set(conv), chi2_j.at[j].set(chi2),
@@ -219,7 +219,7 @@ def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, set
     )
     if estimate.alternatives is None:
         out = _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, loss)
-        return *out, {}, jnp.array(jnp.inf, T0_place.dtype)
+        return *out[:4], {}, jnp.array(jnp.inf, T0_place.dtype)
     T1_place, T1_over, active1 = jax.lax.stop_gradient(
         start_placements(estimate.alternatives, estimate.scales, strategy, T0_place)
     )
@@ -306,7 +306,7 @@ def _reject_and_resolve(T_place, T_over, data, rig, strategy, active, settings, 
         out_m, out_o = out_m | new_m, out_o | new_o
         # A round that rejects nothing keeps the previous solve (none: solve once).
         run = active & (first | jnp.any(new_m) | jnp.any(new_o))
-        T_place2, T_over2, k, converged2 = _lm(
+        T_place2, T_over2, k, converged2, _ = _lm(
             T_place, T_over, without(data, out_m, out_o), rig, strategy, max_steps, rtol,
             atol, run,
         )  # fmt: skip
