@@ -25,8 +25,6 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   moves, a near-collinear formation).
 """
 
-import functools as ft
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -41,7 +39,7 @@ from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_pl
 from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
 from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
-from .measurements import CycleData, normal_equations, pack, unpack
+from .measurements import CycleData, normal_equations, pack, unpack, whitened
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -109,27 +107,23 @@ def observable(covariance: CycleCovariance, size) -> Array:
     )
 
 
-def polish_point(T_place, T_over, data: CycleData, rig: Rig, strategy: str, steps: int):
-    """`steps` undamped Gauss--Newton steps from `(T_place, T_over)` (no step where the
-    information is singular or the step not finite): with `POLISH_STEPS`, the nearby
-    maximum-likelihood optimum, to well within its uncertainty. Returns `(T_place,
-    T_over, chi2)`: the point reached and its chi-square (`inf` without steps).
+def _gauss_newton_step(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """One undamped Gauss--Newton step on the whitened residuals (no step where the
+    information is singular or the step not finite)."""
+    _, H, g = normal_equations(T_place, T_over, data, rig, strategy)
+    step, _ = solve_spd(H, -g)
+    return unpack(step, T_place, T_over)
 
-    One loop of `steps + 1` model evaluations, the last one at the point reached (it
-    takes no step), so that the model is traced once."""
 
-    def evaluate(i, carry):
-        x = carry[:2]
-        cost, H, g = normal_equations(*x, data, rig, strategy)
-        delta, _ = solve_spd(H, -g)
-        P, O = unpack(delta, *x)
-        last = i == steps
-        return (jnp.where(last, x[0], P), jnp.where(last, x[1], O), cost)
-
-    # The loop carries the poses and one number: carrying the normal equations out of it
-    # as well (for the gates) made localize_cycle 1.3-1.7x slower on CPU (batch 256).
-    start = (T_place, T_over, jnp.array(jnp.inf, T_place.dtype))
-    return jax.lax.fori_loop(0, steps + 1, evaluate, start) if steps else start
+def polish_to_optimum(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
+    """`POLISH_STEPS` Gauss--Newton steps from `(T_place, T_over)`: the nearby
+    maximum-likelihood optimum, to well within its uncertainty."""
+    return jax.lax.fori_loop(
+        0,
+        POLISH_STEPS,
+        lambda _, x: _gauss_newton_step(*x, data, rig, strategy),
+        (T_place, T_over),
+    )
 
 
 def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
@@ -137,6 +131,21 @@ def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
     chi-square `runner_up_chi2` is within `AMBIGUITY_MARGIN` of its own."""
     close = runner_up_chi2 - chi2 < AMBIGUITY_MARGIN
     return RESULTS.where((result == RESULTS.successful) & close, RESULTS.ambiguous, result)
+
+
+def _runner_up_chi2(rivals, T_over, data: CycleData, rig: Rig, strategy: str):
+    """The lowest chi-square of the rival starts `(T_place (k, placements, 7), T_over
+    (k, 7), active (k,))` polished to their optima, among those distinct from the
+    solution whose overhead camera is at `T_over` (`inf` if none)."""
+    rival_place, rival_over, active = rivals
+
+    def one(P, O):
+        P, O = polish_to_optimum(P, O, data, rig, strategy)
+        return jnp.sum(whitened(P, O, data, rig, strategy) ** 2), O
+
+    chi2, O = jax.vmap(one)(rival_place, rival_over)
+    distinct = jnp.sum((O[:, 4:] - T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
+    return jnp.min(jnp.where(active & distinct & jnp.isfinite(chi2), chi2, jnp.inf))
 
 
 def end_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
@@ -152,11 +161,11 @@ def _pose_differences(T_a, T_b) -> tuple[Float[Array, "4 3"], Float[Array, "4 3"
     return a.translation() - b.translation(), rotation
 
 
-def _gates_at(point: "GatePoint", polished, P, O, rig: Rig, strategy: str):
-    """The gates of `point`, evaluated at `(P, O)`: the estimate itself, or its polished
-    optimum where `polished` (a bool, traced: see [`gate_all`][]). Returns `(result,
-    checks, covariance)`."""
-    T_place, T_over, data = point.T_place, point.T_over, point.data
+def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
+              solver_result: RESULTS, polished: bool, final_poses):  # fmt: skip
+    """The gates of an estimate `(T_place, T_over)` with end-of-cycle poses `final_poses`,
+    evaluated at `(P, O)`: the estimate itself, or its polished optimum when `polished`
+    (see [`gate_all`][]). Returns `(result, checks, covariance)`."""
     dtype = T_place.dtype
     chi2, H, g = normal_equations(P, O, data, rig, strategy)
     ml_covariance, ok_information = spd_inverse(H)
@@ -168,16 +177,15 @@ def _gates_at(point: "GatePoint", polished, P, O, rig: Rig, strategy: str):
     ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy)
     offset = -step
     dp, dr = final_offsets(offset, P, O, strategy)
-    # A polished point's estimate is away from it: add the estimate's own offset.
-    own_dp, own_dr = _pose_differences(point.final_poses, end_poses(P, O, strategy))
-    offset = offset + jnp.where(polished, pack(T_place, T_over, P, O), 0.0)
-    moved = polished & jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
-    dp = dp + jnp.where(moved, own_dp, 0.0)
-    dr = dr + jnp.where(moved, own_dr, 0.0)
+    if polished:
+        own_dp, own_dr = _pose_differences(final_poses, end_poses(P, O, strategy))
+        offset = offset + pack(T_place, T_over, P, O)
+        moved = jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
+        dp = dp + jnp.where(moved, own_dp, 0.0)
+        dr = dr + jnp.where(moved, own_dr, 0.0)
     covariance = with_offset(ml, offset, dp, dr)
     limit = chi2_limit(dof, data.num_sightings, data.num_odometry, rig.noise_model, dtype)
     is_observable = observable(ml, formation_size(P)) & (dof > 0)
-    solver_result = point.solver_result
     ok = solver_result == RESULTS.successful
     result = RESULTS.where(ok & ~is_observable, RESULTS.unobservable, solver_result)
     result = RESULTS.where(
@@ -225,90 +233,44 @@ def gate_rivals(estimate: CycleEstimate, point: GatePoint, strategy: str):
     return start_placements(estimate.alternatives, estimate.scales, strategy, point.T_place)
 
 
-def gate_all(
-    points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool | list[bool], rivals=None
-):
-    """Gate every point: a list of `(result, checks, covariance)`, one per point.
-    `result` is the point's `solver_result` when that is a failure; else `unobservable`
-    or `inconsistent_fit` when a gate fails, else `successful`.
+def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, rivals=None):
+    """Gate every point, as one `vmap`: a list of `(result, checks, covariance)`, one per
+    point. `result` is the point's `solver_result` when that is a failure; else
+    `unobservable` or `inconsistent_fit` when a gate fails, else `successful`.
 
-    With `polish` (per point, or one flag for all; for estimates that are not converged
-    refinements, e.g. closed forms) the gates look at the point `POLISH_STEPS`
-    Gauss--Newton steps away, the maximum-likelihood optimum to well within its
-    uncertainty. The covariance is the estimate's own, to first order: the
-    maximum-likelihood estimator's `(J^T J)^-1` there plus `d d^T`, `d` the estimate's
-    offset from that point (its own end-of-cycle poses against the optimum's: a closed
-    form solves a stationary robot's pose again at every step) and from the optimum of
-    the model linearized there (zero at a converged refinement). `rivals`: per point,
-    `None` or other starts `(T_place (k, placements, 7), T_over (k, 7), active (k,))` (a
-    closed form's other local minima, see [`gate_rivals`][]); polished too, a distinct
-    one that fits almost as well makes the estimate `ambiguous`.
+    With `polish` (for estimates that are not converged refinements, e.g. closed forms)
+    the gates look at the point `POLISH_STEPS` Gauss--Newton steps away, the
+    maximum-likelihood optimum to well within its uncertainty. The covariance is the
+    estimate's own, to first order: the maximum-likelihood estimator's `(J^T J)^-1` there
+    plus `d d^T`, `d` the estimate's offset from that point (its own end-of-cycle poses
+    against the optimum's: a closed form solves a stationary robot's pose again at every
+    step) and from the optimum of the model linearized there (zero at a converged
+    refinement). `rivals`: per point, `None` or other starts `(T_place (k, placements,
+    7), T_over (k, 7), active (k,))` (a closed form's other local minima, see
+    [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
+    estimate `ambiguous`."""
+    stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
 
-    The rivals need no more than their chi-square at their polished point, which the
-    polishing loop gives. One `vmap` polishes the polished points and the rivals, one
-    gates every point: each traced once, whatever the number of points."""
-    if not points:
-        return []
-    flags = [polish] * len(points) if isinstance(polish, bool) else list(polish)
-    rivals = rivals or [None] * len(points)
-    # Lanes of the polishing, per kind: (point, index of its point, rival index).
-    lanes = {True: [], False: []}
-    for i, (point, flag) in enumerate(zip(points, flags)):
-        lanes[flag].append((point, i, None))
-    for i, (point, rival) in enumerate(zip(points, rivals)):
-        if rival is None:
-            continue
-        if not flags[i]:
-            raise ValueError("`rivals` are polished: give them for polished points only.")
-        for k in range(rival[0].shape[0]):
-            T_place, T_over = rival[0][k], rival[1][k]
-            final = end_poses(T_place, T_over, strategy)
-            rival_point = GatePoint(T_place, T_over, final, point.data, RESULTS.successful)
-            lanes[True].append((rival_point, i, k))
-    polished, rival_fits = {}, {}
-    for flag, members in lanes.items():
-        if not members:
-            continue
-        steps = POLISH_STEPS if flag else 0
-        # Lanes that share their measurements (a cycle's estimates and their rivals)
-        # take them unbatched: one copy, not one per lane.
-        data = members[0][0].data
-        shared = all(m[0].data is data for m in members)
-        T_place = jnp.stack([m[0].T_place for m in members])
-        T_over = jnp.stack([m[0].T_over for m in members])
-        lane_data = data if shared else _stack([m[0].data for m in members])
-        P, O, chi2 = jax.vmap(
-            lambda P, O, d, steps=steps: polish_point(P, O, d, rig, strategy, steps),
-            in_axes=(0, 0, None if shared else 0),
-        )(T_place, T_over, lane_data)
-        for lane, (_, i, k) in enumerate(members):
-            if k is None:
-                polished[i] = (P[lane], O[lane])
-            else:
-                rival_fits.setdefault(i, []).append((k, chi2[lane], O[lane]))
-    # The gates proper of the estimates only, in one vmap (the rivals need no more than
-    # their polished chi-square).
-    P, O = _stack([polished[i] for i in range(len(points))])
-    gates = jax.vmap(ft.partial(_gates_at, rig=rig, strategy=strategy))(
-        _stack(points), jnp.asarray(flags), P, O
-    )
-    result = []
-    for i, rival in enumerate(rivals):
-        gate = jax.tree.map(lambda x, i=i: x[i], gates)
+    def one(p: GatePoint):
+        if polish:
+            P, O = polish_to_optimum(p.T_place, p.T_over, p.data, rig, strategy)
+        else:
+            P, O = p.T_place, p.T_over
+        gate = _gates_at(
+            P, O, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
+            p.final_poses,
+        )  # fmt: skip
+        return gate, O
+
+    out, O_all = jax.vmap(one)(stacked)
+    gates = []
+    for i, (point, rival) in enumerate(zip(points, rivals or [None] * len(points))):
+        result, checks, covariance = jax.tree.map(lambda x, i=i: x[i], out)
         if rival is not None:
-            fits = sorted(rival_fits[i], key=lambda f: f[0])
-            chi2 = jnp.stack([f[1] for f in fits])
-            O_rival = jnp.stack([f[2] for f in fits])
-            distinct = jnp.sum((O_rival[:, 4:] - O[i, None, 4:]) ** 2, -1) > DISTINCT_MINIMUM**2
-            usable = rival[2] & distinct & jnp.isfinite(chi2)
-            runner_up = jnp.min(jnp.where(usable, chi2, jnp.inf))
-            gate = (mark_ambiguous(gate[0], gate[1].chi2, runner_up), *gate[1:])
-        result.append(gate)
-    return result
-
-
-def _stack(trees):
-    return jax.tree.map(lambda *x: jnp.stack(x), *trees)
+            runner_up = _runner_up_chi2(rival, O_all[i], point.data, rig, strategy)
+            result = mark_ambiguous(result, checks.chi2, runner_up)
+        gates.append((result, checks, covariance))
+    return gates
 
 
 def gated(estimate: CycleEstimate, gate) -> CycleEstimate:

@@ -135,9 +135,10 @@ def estimate_all(
 ):  # fmt: skip
     """Every requested estimator on the same observations (shared ground chain), gated
     together: the closed forms, the refinement started from the robust closed form, and
-    (with `truth`) the Cramér–Rao bound at the true poses of the sightings present, all
-    gated by one [`gate_all`][jaxloc._model.gates.gate_all] (the closed forms polished;
-    the converged refinement and the true poses where they are).
+    (with `truth`) the Cramér–Rao bound at the true poses of the sightings present, in
+    one `vmap` of the gates (one traced copy of the gates and of the covariance per kind:
+    polished for the closed forms, at the point for the converged refinement and the
+    true poses).
 
     **Returns:** `(estimates, bound)`: the estimates in the order of `methods`, and the
     bound's [`jaxloc.CycleCovariance`][] (`None` without `truth`)."""
@@ -157,8 +158,10 @@ def estimate_all(
     closed = [m for m in estimates if m not in REFINEMENTS]
     points = [gate_point(estimates[m], data, strategy) for m in closed]
     rivals = [gate_rivals(estimates[m], p, strategy) for m, p in zip(closed, points)]
+    for name, gate in zip(closed, gate_all(points, rig, strategy, polish=True, rivals=rivals)):
+        estimates[name] = gated(estimates[name], gate)
     # A converged refinement and the true poses are gated where they are.
-    points += [
+    points = [
         gate_point(estimates[m], refined_data(data, estimates[m]), strategy) for m in refinements
     ]
     if truth is not None:
@@ -168,13 +171,9 @@ def estimate_all(
         )
         final = end_poses(T_place, T_over, strategy)
         points.append(GatePoint(T_place, T_over, final, bound_data, RESULTS.successful))
-    polish = [True] * len(closed) + [False] * (len(points) - len(closed))
-    rivals += [None] * (len(points) - len(closed))
-    gates = gate_all(points, rig, strategy, polish=polish, rivals=rivals)
-    for name, gate in zip(closed, gates):
-        estimates[name] = gated(estimates[name], gate)
+    gates = gate_all(points, rig, strategy, polish=False) if points else []
     for i, m in enumerate(refinements):
-        estimates[m] = finish_refinement(estimates[m], runner_up[m], gates[len(closed) + i])
+        estimates[m] = finish_refinement(estimates[m], runner_up[m], gates[i])
     bound = gates[-1][2] if truth is not None else None
     return [estimates[m] for m in methods], bound
 
