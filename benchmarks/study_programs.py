@@ -58,7 +58,7 @@ def main() -> None:
             continue
         ynn_on = dict(mc.LARGE_PROGRAM_COMPILER_OPTIONS)
         del ynn_on["xla_cpu_experimental_ynn_fusion_type"]  # XLA's default: on
-        with_ynn = eqx.filter_jit(mc._run_chunk.__wrapped__, compiler_options=ynn_on)
+        with_ynn = eqx.filter_jit(mc._chunk_trials, compiler_options=ynn_on)
         times = {"without YNNPACK (jaxloc)": [], "with YNNPACK (XLA default)": []}
         programs = dict(zip(times, (mc._run_chunk, with_ynn)))
         for c in range(5):

@@ -5,6 +5,7 @@ import random
 import jax
 import jax.random as jr
 import pytest
+from jaxloc._core.programs import clear_programs
 
 
 jax.config.update("jax_enable_x64", True)
@@ -37,6 +38,7 @@ def _release_compiled_programs():
     persistent compilation cache."""
     yield
     jax.clear_caches()
+    clear_programs()
     gc.collect()
 
 

@@ -27,6 +27,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array
 
+from .._core.programs import cached_program, Program
 from .._sim.scenario import Scenario
 from .._sim.scenario_file import scenario_to_dict
 from .chunks import (
@@ -38,7 +39,7 @@ from .chunks import (
     write_chunk,
 )
 from .stats import StreamingSummary
-from .trial import ALL_METHODS, METHODS, run_trial, TrialErrors
+from .trial import ALL_METHODS, METHODS, run_trial
 
 
 FIELDS = (
@@ -105,11 +106,65 @@ def map_trials(trial: Callable[[Array], Any], start, chunk_size: int) -> Any:
     )
 
 
-@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
-def _run_chunk(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
+def _chunk_trials(scenario: Scenario, seed, start, chunk_size: int, methods: tuple[str, ...]):
     return map_trials(
         lambda i: run_trial(scenario, jr.fold_in(jr.key(seed), i), methods), start, chunk_size
     )
+
+
+#: The chunk program as a plain jitted function (benchmarks lower it directly).
+_run_chunk = eqx.filter_jit(_chunk_trials, compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
+
+
+def chunk_program(
+    name: str,
+    trial: Callable[[Any, Array], Any],
+    scenario: eqx.Module,
+    chunk_size: int,
+    static: str,
+    fields: Sequence[str],
+) -> Program:
+    """The chunk program of a study: `trial(scenario, key)` of trials `start + [0, n)`,
+    `n` the chunk size rounded up to a multiple of the device count, each keyed
+    `fold_in(key(seed), i)` and sharded by [`map_trials`][]. Traced once per scenario
+    structure, chunk size and `static` (the text naming the rest of what `trial` closes
+    over) and kept beside the compilation cache (`jaxloc._core.programs`), so that a later
+    process loads it instead of tracing it again.
+
+    `program(chunk_inputs(scenario, seed, start))` returns a dict of the record's `fields`,
+    each with a leading axis of `n`."""
+    n_dev = jax.device_count()
+    padded = -(-chunk_size // n_dev) * n_dev
+    dynamic, rest = eqx.partition(scenario, eqx.is_array)
+    arrays, tree = jax.tree.flatten(dynamic)
+
+    def make_fn():
+        def chunk(args):
+            arrays, seed, start = args
+            sc = eqx.combine(jax.tree.unflatten(tree, arrays), rest)
+            record = map_trials(lambda i: trial(sc, jr.fold_in(jr.key(seed), i)), start, padded)
+            return {f: getattr(record, f) for f in fields}
+
+        return chunk
+
+    description = repr((str(jax.tree.structure(rest)), str(tree), padded, static, tuple(fields)))
+    args = (arrays, jax.ShapeDtypeStruct((), jnp.uint32), jax.ShapeDtypeStruct((), jnp.int32))
+    return cached_program(
+        name, make_fn, description, args, compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS
+    )
+
+
+def chunk_inputs(scenario: eqx.Module, seed: int, start: int):
+    """The arguments of a [`chunk_program`][] call: the scenario's arrays, the seed and
+    the first trial index."""
+    arrays = jax.tree.leaves(eqx.filter(scenario, eqx.is_array))
+    return arrays, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int32)
+
+
+def _study_program(scenario: Scenario, chunk_size: int, methods) -> Program:
+    methods = tuple(methods)
+    trial = lambda sc, key: run_trial(sc, key, methods)  # noqa: E731
+    return chunk_program("study_chunk", trial, scenario, chunk_size, repr(methods), FIELDS)
 
 
 def balanced_chunk_size(n_trials: int, max_chunk_size: int = 4096) -> int:
@@ -175,8 +230,8 @@ def compile_in_background(
     """
     threads = []
     for scenario in scenarios:
-        lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
-        thread = threading.Thread(target=lowered.compile, daemon=True)
+        program = _study_program(scenario, chunk_size, methods)
+        thread = threading.Thread(target=program.compile, daemon=True)
         thread.start()
         threads.append(thread)
     return threads
@@ -200,8 +255,8 @@ def run_chunk(
     leading trial axis, plus `"index"` (the trial indices).
     """
     start = chunk_index * chunk_size
-    errors = _run_chunk(*_chunk_inputs(scenario, seed, start, chunk_size, methods))
-    out = {name: np.asarray(getattr(errors, name))[:chunk_size] for name in FIELDS}
+    errors = _study_program(scenario, chunk_size, methods)(chunk_inputs(scenario, seed, start))
+    out = {name: np.asarray(errors[name])[:chunk_size] for name in FIELDS}
     out["index"] = np.arange(start, start + chunk_size, dtype=np.int64)
     return out
 
@@ -210,14 +265,10 @@ def chunk_fields(
     scenario: Scenario, chunk_size: int, methods: tuple[str, ...]
 ) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
     """Shape and dtype of every array [`jaxloc.run_chunk`][] returns for this study, as
-    `name -> (shape, dtype)`: what a chunk file must hold. Traces the chunk program
-    (cached: a later compilation reuses the trace)."""
-    lowered = _run_chunk.lower(*_chunk_inputs(scenario, 0, 0, chunk_size, methods))
-    # The program's outputs, as equinox's jit lays them out (with its own extra leaves).
-    out = jax.tree.leaves(lowered.lowered.out_info, is_leaf=lambda x: isinstance(x, TrialErrors))
-    (errors,) = [x for x in out if isinstance(x, TrialErrors)]
-    fields = {n: ((chunk_size, *getattr(errors, n).shape[1:]), np.dtype(getattr(errors, n).dtype))
-              for n in FIELDS}  # fmt: skip
+    `name -> (shape, dtype)`: what a chunk file must hold. From the chunk program (traced
+    or loaded once: a later compilation reuses it)."""
+    out = _study_program(scenario, chunk_size, methods).out_avals
+    fields = {n: ((chunk_size, *out[n].shape[1:]), np.dtype(out[n].dtype)) for n in FIELDS}
     fields["index"] = ((chunk_size,), np.dtype(np.int64))
     return fields
 

@@ -13,16 +13,13 @@ number of cycles and the smoother's window.
 from collections import Counter
 from collections.abc import Callable
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 
+from .._core.programs import Program
 from .._core.results import status_names
 from .._cycle.layout import CAMERAS
 from .._study.chunks import check_seed, open_study, study_manifest
-from .._study.engine import LARGE_PROGRAM_COMPILER_OPTIONS, map_trials, stream_chunks
+from .._study.engine import chunk_inputs, chunk_program, stream_chunks
 from .._study.stats import describe
 from .scenario import track_scenario_to_dict, TrackScenario
 from .tracker import DEFAULT_WINDOW
@@ -33,19 +30,10 @@ from .trial import run_track_trial, TRACK_METHODS, TrackErrors
 TRACK_FIELDS = tuple(TrackErrors.__dataclass_fields__)
 
 
-@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
-def _track_chunk(track: TrackScenario, seed, start, chunk_size: int, cycles: int, window: int):
-    return map_trials(
-        lambda i: run_track_trial(track, jr.fold_in(jr.key(seed), i), cycles, window),
-        start, chunk_size,
-    )  # fmt: skip
-
-
-def _chunk_inputs(track, seed, start, chunk_size, cycles, window):
-    n_dev = jax.device_count()
-    padded = -(-chunk_size // n_dev) * n_dev
-    return (track, jnp.asarray(seed, jnp.uint32), jnp.asarray(start, jnp.int32), padded,
-            cycles, window)  # fmt: skip
+def _track_program(track: TrackScenario, chunk_size: int, cycles: int, window: int) -> Program:
+    trial = lambda tr, key: run_track_trial(tr, key, cycles, window)  # noqa: E731
+    static = repr((int(cycles), int(window)))
+    return chunk_program("track_chunk", trial, track, chunk_size, static, TRACK_FIELDS)
 
 
 def run_track_chunk(
@@ -60,15 +48,16 @@ def run_track_chunk(
     of [`jaxloc.TrackErrors`][] with a leading run axis, and `"index"`. Deterministic (a
     cluster engine's retried task gets the same numbers)."""
     start = chunk_index * chunk_size
-    errors = _track_chunk(*_chunk_inputs(track, seed, start, chunk_size, cycles, window))
-    out = {name: np.asarray(getattr(errors, name))[:chunk_size] for name in TRACK_FIELDS}
+    program = _track_program(track, chunk_size, cycles, window)
+    errors = program(chunk_inputs(track, seed, start))
+    out = {name: np.asarray(errors[name])[:chunk_size] for name in TRACK_FIELDS}
     out["index"] = np.arange(start, start + chunk_size, dtype=np.int64)
     return out
 
 
 def precompile_track(track: TrackScenario, chunk_size: int, cycles: int, window: int) -> None:
     """Compile a tracking study's chunk program now (later chunks reuse it)."""
-    _track_chunk.lower(*_chunk_inputs(track, 0, 0, chunk_size, cycles, window)).compile()
+    _track_program(track, chunk_size, cycles, window).compile()
 
 
 def track_chunk_fields(track: TrackScenario, chunk_size: int, cycles: int):

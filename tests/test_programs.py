@@ -1,0 +1,80 @@
+"""Traced programs kept on disk (`jaxloc._core.programs`): exported once, loaded by the
+next process instead of traced, the same numbers; the file name changes with everything
+that changes the trace."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxloc._core.programs import program_key
+
+
+SCRIPT = textwrap.dedent(
+    """
+    import sys
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+    from jaxloc._core.programs import cached_program, program_key
+
+    def make_fn():
+        def fn(args):
+            x, k = args
+            return {"y": jnp.sin(x) * k, "s": jnp.sum(x)}
+        return fn
+
+    args = (jnp.linspace(0.0, 1.0, 5), jnp.asarray(3.0))
+    program = cached_program("toy", make_fn, "toy v1", args)
+    again = cached_program("toy", make_fn, "toy v1", args)
+    out = program((jnp.arange(5.0), jnp.asarray(2.0)))
+    print("loaded" if program.loaded else "traced", again is program)
+    print(repr(np.asarray(out["y"]).tolist()), float(out["s"]))
+    """
+)
+
+
+def _run(cache):
+    run = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(cache)], capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 0, run.stderr
+    return run.stdout.split("\n")
+
+
+def test_a_program_is_traced_once_and_loaded_by_the_next_process(tmp_path):
+    first = _run(tmp_path)
+    second = _run(tmp_path)
+    assert first[0] == "traced True" and second[0] == "loaded True"
+    assert first[1] == second[1]  # the same numbers, to the last digit
+    y = np.sin(np.arange(5.0)) * 2.0
+    assert first[1] == f"{y.tolist()!r} 10.0"
+    (name,) = os.listdir(tmp_path / "jaxloc-programs")
+    assert name.startswith("toy-") and name.endswith(".jaxexport")
+
+
+def test_a_damaged_export_is_traced_anew(tmp_path):
+    _run(tmp_path)
+    (name,) = os.listdir(tmp_path / "jaxloc-programs")
+    with open(tmp_path / "jaxloc-programs" / name, "r+b") as f:
+        f.truncate(100)
+    assert _run(tmp_path)[0] == "traced True"
+    assert _run(tmp_path)[0] == "loaded True"
+
+
+def test_the_key_names_what_changes_the_trace():
+    args = (jnp.zeros(5), jnp.asarray(3.0))
+    key = program_key("toy", "v1", args)
+    assert key == program_key("toy", "v1", (jnp.ones(5), jnp.asarray(-1.0)))  # values: no
+    structs = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), args)
+    assert key == program_key("toy", "v1", structs)
+    assert key != program_key("toy", "v2", args)
+    assert key != program_key("other", "v1", args)
+    assert key != program_key("toy", "v1", (jnp.zeros(6), jnp.asarray(3.0)))
+    assert key != program_key("toy", "v1", (jnp.zeros(5, jnp.float32), jnp.asarray(3.0)))
+    assert key != program_key("toy", "v1", [jnp.zeros(5), jnp.asarray(3.0)])
+    with jax.enable_x64(False):
+        assert key != program_key("toy", "v1", args)
