@@ -274,8 +274,24 @@ def test_every_command_and_option_explains_itself():
         assert method in helps["jaxloc simulate"]["--methods"]
     assert "per strategy" not in helps["jaxloc simulate"]["--trials"]  # one scenario, one study
     assert "two studies" in helps["jaxloc table1"]["--trials"]
-    for name in ("jaxloc table1", "jaxloc simulate"):
+    for name in ("jaxloc table1", "jaxloc simulate", "jaxloc design"):
         assert "-q/--quiet" in helps[name] and "--ray" in helps[name]
+        assert "a task whose worker is lost is retried" in helps[name]["--ray"]
+    assert "every group of starts" in helps["jaxloc design"]["--ray"]
+
+
+@pytest.mark.parametrize("command", ["simulate", "design"])
+def test_ray_option_parses_alike_for_studies_and_design(command):
+    # Issue 22: `jaxloc design --ray [ADDRESS]` is the studies' option (one registration).
+    from jaxloc._cli.common import LOCAL_RAY
+    from jaxloc._cli.main import build_parser
+
+    parser = build_parser()
+    head = [command] + (["--scenario", "s.yaml"] if command == "simulate" else [])
+    assert parser.parse_args(head).ray is None
+    assert parser.parse_args(head + ["--ray"]).ray == LOCAL_RAY
+    assert parser.parse_args(head + ["--ray", "auto"]).ray == "auto"
+    assert parser.parse_args(head + ["--ray", "ray://head:10001"]).ray == "ray://head:10001"
 
 
 def test_version_comes_from_the_package_metadata(capsys):

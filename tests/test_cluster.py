@@ -27,3 +27,18 @@ def test_a_study_on_two_ray_workers_survives_a_lost_task(tmp_path):
     assert "all checks passed" in run.stdout
     assert os.path.exists(tmp_path / "crashed_1")  # the worker process did die
     print(run.stdout)
+
+
+@pytest.mark.timeout(900)
+def test_a_design_on_two_ray_workers_is_the_local_design(tmp_path):
+    # Issue 22: `design_formation(..., runner=ray_starts())` and `jaxloc design --ray` run
+    # the starts in two tasks of two and pick the local run's start and formation.
+    run = subprocess.run(
+        [sys.executable, os.path.join(HERE, "cluster_design.py"), str(tmp_path)],
+        capture_output=True, text=True, timeout=840,
+        env={**os.environ, "RAY_ENABLE_AUTO_CONNECT": "0"},
+    )  # fmt: skip
+    assert run.returncode == 0, f"{run.stdout}\n{run.stderr}"
+    assert "all checks passed" in run.stdout
+    assert os.path.exists(tmp_path / "crashed_1")  # the worker process did die
+    print(run.stdout)

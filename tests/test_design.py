@@ -204,6 +204,7 @@ def _parser():
         (["design", "--weights", "1,0"], "--weights"),
         (["design", "--objective", "mc", "--criterion", "D"], "crlb only"),
         (["design", "--starts", "0"], "--starts"),
+        (["design", "--ray", " "], "--ray ADDRESS must not be empty"),
     ],
 )
 def test_cli_rejects_bad_arguments(argv, match):

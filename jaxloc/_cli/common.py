@@ -2,8 +2,9 @@
 made before any work starts, and strict JSON reports."""
 
 import argparse
+import contextlib
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from .._core.files import atomic_write_json, check_output_dir, check_output_file
@@ -24,8 +25,9 @@ exit codes:
        (localize: its poses file is written)
   2    bad input: an argument, or a file that cannot be read, parsed or written
        (one line on stderr names it)
-  3    --ray: the Ray cluster cannot be reached, or a chunk task still failed after
-       its retries (the chunks finished until then are in --out DIR)
+  3    --ray: the Ray cluster cannot be reached, or a task (a study's chunk, a
+       design's group of starts) still failed after its retries (a study's chunks
+       finished until then are in --out DIR)
   130  interrupted (Ctrl-C); a study run with --out DIR resumes when the same
        command is run again
 """
@@ -125,3 +127,48 @@ def chatter(args: Any) -> Callable[..., None]:
     if getattr(args, "quiet", False):
         return lambda *a, **k: None
     return print
+
+
+#: `--ray` given without an address: start a local Ray cluster.
+LOCAL_RAY = "local"
+
+
+def ray_option(p: argparse.ArgumentParser, tasks: str, same: str) -> None:
+    """Add `--ray [ADDRESS]` to the command `p`: `tasks` says what runs as one Ray task
+    (e.g. "every chunk"), `same` what equals a local run (e.g. "same numbers")."""
+    p.add_argument("--ray", nargs="?", const=LOCAL_RAY, default=None, metavar="ADDRESS",
+                   help=f"run {tasks} as a task on a Ray cluster: the one at ADDRESS (e.g. "
+                   "ray://HEAD:10001, or 'auto' for the cluster this machine is in), or a new "
+                   "local one with a worker per core when ADDRESS is omitted; a task whose "
+                   f"worker is lost is retried; {same} as a local run; needs pip install "
+                   "'jaxloc[cluster]' (and jaxloc on every node)")  # fmt: skip
+
+
+def check_ray_arg(args: Any) -> None:
+    """A one-line `ValueError` if `--ray` was given an empty ADDRESS."""
+    ray = getattr(args, "ray", None)
+    if ray is not None and ray.strip() == "":
+        raise ValueError("--ray ADDRESS must not be empty (omit ADDRESS for a local cluster).")
+
+
+@contextlib.contextmanager
+def ray_cluster(args: Any) -> Iterator[str | None]:
+    """With --ray: connect to the cluster (or start a local one) for the duration of the
+    block and yield one line describing it; else yield None. A cluster that cannot be
+    reached raises `jaxloc._study.cluster.ClusterError` (exit code 3)."""
+    if getattr(args, "ray", None) is None:
+        yield None
+        return
+    # No Ray call may start a cluster of its own (Ray's auto-init): after Ctrl-C the
+    # command's thread may still call Ray while the main thread disconnects. Read by Ray
+    # when it is imported, here (`connect`).
+    os.environ.setdefault("RAY_ENABLE_AUTO_CONNECT", "0")
+    from .._study.cluster import connect, describe_cluster, disconnect
+
+    address = None if args.ray == LOCAL_RAY else args.ray
+    started = connect(address)
+    try:
+        yield describe_cluster()
+    finally:
+        if started:
+            disconnect()

@@ -11,12 +11,15 @@ import numpy as np
 from .common import (
     chatter,
     check_outputs,
+    check_ray_arg,
     check_seed_arg,
     EXIT_CODES_HELP,
     EXIT_NO_RESULT,
     EXIT_OK,
     HelpFormatter,
     quiet_option,
+    ray_cluster,
+    ray_option,
     write_report,
 )
 
@@ -80,6 +83,8 @@ def register(sub: argparse._SubParsersAction, parents=None) -> None:
     p.add_argument("--verify-seed", type=int, default=12345,
                    help="seed of the fresh Monte Carlo check (differs from --seed), in "
                         "[0, 4294967295]")
+    ray_option(p, tasks="every group of starts (one group per cluster CPU)",
+               same="the same draws, the same chosen start and formation")
     p.add_argument("--json", metavar="FILE", help="write every number as JSON")
     p.set_defaults(func=_cmd_design)
 
@@ -146,6 +151,7 @@ def _check_design_args(args) -> tuple:
         raise ValueError("--criterion D applies to --objective crlb only.")
     check_seed_arg("--seed", args.seed)
     check_seed_arg("--verify-seed", args.verify_seed)
+    check_ray_arg(args)
     check_outputs(args, files=("out", "formation_json", "json"))
     return _parse_free(args.free), _parse_weights(args.weights)
 
@@ -332,14 +338,19 @@ def _cmd_design(args) -> int:
     scenario, formation, fixed = _start(args)
     limits = Limits(image_margin_px=float(args.image_margin))
     _print_header(args, scenario, free, weights)
-    t0 = time.perf_counter()
-    res = design_formation(
-        formation, scenario, key=jr.key(args.seed), objective=args.objective,
-        criterion=args.criterion, free=free, weights=weights, num_starts=args.starts,
-        num_draws=args.draws, iterations=args.iterations, limits=limits,
-        strict_steps=True if args.strict_moves else None, feasibility_tol=FEASIBILITY_TOL,
-    )  # fmt: skip
-    elapsed = time.perf_counter() - t0
+    with ray_cluster(args) as where:
+        if where:
+            chatter(args)(f"({where}; every group of starts one task, retried if its worker "
+                          "is lost)")  # fmt: skip
+        t0 = time.perf_counter()
+        res = design_formation(
+            formation, scenario, key=jr.key(args.seed), objective=args.objective,
+            criterion=args.criterion, free=free, weights=weights, num_starts=args.starts,
+            num_draws=args.draws, iterations=args.iterations, limits=limits,
+            strict_steps=True if args.strict_moves else None, feasibility_tol=FEASIBILITY_TOL,
+            runner=_runner(args),
+        )  # fmt: skip
+        elapsed = time.perf_counter() - t0
     feasible = _feasible(res)
     vals, baseline = _fresh_objectives(args, res, scenario, fixed, weights)
     _print_objectives(args, res, elapsed, vals, baseline)
@@ -348,6 +359,8 @@ def _cmd_design(args) -> int:
     _print_result(res, feasible, margins, in_view, args.starts)
     report = _design_report(args, res, scenario.strategy, free, weights, elapsed, vals, margins,
                             in_view)  # fmt: skip
+    if where:
+        report["ray"] = where
     designed = _write_outputs(args, res, report, scenario, baseline, feasible)
     if args.verify_trials and feasible:
         report["verification"] = _verify(args, scenario, baseline, designed)
@@ -356,6 +369,16 @@ def _cmd_design(args) -> int:
     if args.json:
         write_report(args.json, report, quiet=args.quiet)
     return EXIT_OK if feasible else EXIT_NO_RESULT
+
+
+def _runner(args):
+    """The start runner of --ray (`jaxloc._design.cluster.ray_starts`), else `None`
+    (every start in this process)."""
+    if args.ray is None:
+        return None
+    from .._design.cluster import ray_starts
+
+    return ray_starts()
 
 
 def _margins(formation, scenario, limits, seed: int, strict: bool):

@@ -2,7 +2,6 @@
 `design`, `track`. Exit codes: see `jaxloc._cli.common` (and `jaxloc --help`)."""
 
 import argparse
-import contextlib
 import os
 import signal
 import sys
@@ -16,6 +15,7 @@ from . import design as _cli_design, images as _cli_images, track as _cli_track
 from .common import (
     chatter,
     check_outputs,
+    check_ray_arg,
     check_seed_arg,
     EXIT_BAD_INPUT,
     EXIT_CLUSTER,
@@ -25,6 +25,8 @@ from .common import (
     EXIT_OK,
     HelpFormatter,
     quiet_option,
+    ray_cluster,
+    ray_option,
     write_report,
 )
 from .table import format_table, plot_studies
@@ -119,8 +121,7 @@ def _check_study_args(args) -> None:
     _methods(args)
     if args.stream and args.plot:
         raise ValueError("--plot needs every trial's errors; it cannot be used with --stream.")
-    if args.ray is not None and args.ray.strip() == "":
-        raise ValueError("--ray ADDRESS must not be empty (omit ADDRESS for a local cluster).")
+    check_ray_arg(args)
     check_outputs(args, files=("json",), dirs=("out",))
 
 
@@ -194,7 +195,7 @@ def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
     t_start = time.perf_counter()
     report = {"title": title, "trials": args.trials, "seed": args.seed, "strategies": {},
               "devices": jax.device_count()}  # fmt: skip
-    with _cluster(args) as where:
+    with ray_cluster(args) as where:
         if where:
             report["ray"] = where
             say(f"\n({where}; every chunk one task, retried if its worker is lost)")
@@ -224,28 +225,6 @@ def _run(scenarios: dict, args, title: str, compile_order=None) -> int:
         plot_studies({s: studies[s] for s in scenarios}, methods, args.plot)
         say(f"wrote {args.plot}")
     return _study_exit_code(summaries)
-
-
-@contextlib.contextmanager
-def _cluster(args):
-    """With --ray: connect to the cluster (or start a local one) for the duration of the
-    studies and yield one line describing it; else yield None."""
-    if args.ray is None:
-        yield None
-        return
-    # No Ray call may start a cluster of its own (Ray's auto-init): after Ctrl-C the
-    # command's thread may still call Ray while the main thread disconnects. Read by Ray
-    # when it is imported, here (`connect`).
-    os.environ.setdefault("RAY_ENABLE_AUTO_CONNECT", "0")
-    from .._study.cluster import connect, describe_cluster, disconnect
-
-    address = None if args.ray == LOCAL_RAY else args.ray
-    started = connect(address)
-    try:
-        yield describe_cluster()
-    finally:
-        if started:
-            disconnect()
 
 
 def _study_exit_code(summaries: dict) -> int:
@@ -307,9 +286,6 @@ def _cmd_cameras(args) -> int:
         print(f"{name:<28} {w}x{h}  {fov}  round-trip max error {err:.1e} px")
     return 0
 
-
-#: `--ray` given without an address: start a local Ray cluster.
-LOCAL_RAY = "local"
 
 _STUDY_DESCRIPTION = """\
 Each trial simulates one localization cycle (the robots' moves, every camera's pixels with
@@ -448,13 +424,7 @@ def _study_options(p: argparse.ArgumentParser, studies: int) -> None:
         help="bounded memory for any number of trials: keep only running statistics "
         "(percentiles from histograms, within 1.2%%); no --plot",
     )  # fmt: skip
-    p.add_argument("--ray", nargs="?", const=LOCAL_RAY, default=None, metavar="ADDRESS",
-                   help="run every chunk as a task on a Ray cluster: the one at ADDRESS (e.g. "
-                   "ray://HEAD:10001, or 'auto' for the cluster this machine is in), or a new "
-                   "local one with a worker per core when ADDRESS is omitted; a task whose "
-                   "worker is lost is retried; same numbers, --out and --stream as a local "
-                   "run; needs pip install 'jaxloc[cluster]' (and jaxloc on every "
-                   "node)")  # fmt: skip
+    ray_option(p, tasks="every chunk", same="same numbers, --out and --stream")
     p.add_argument("--json", metavar="FILE", help="write every number as JSON (strict: NaN "
                    "as null)")  # fmt: skip
     p.add_argument("--plot", metavar="FILE", help="error CDFs per camera, position and "

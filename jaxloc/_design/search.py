@@ -9,12 +9,16 @@ r"""Formation design: objectives, gradient-based search, and fresh Monte Carlo c
   optimistix's implicit adjoint).
 - [`jaxloc.design_formation`][]: BFGS (optimistix) on objective + smooth constraint
   penalty, from the given formation and many random starts at once (`vmap`), keeping the
-  best feasible result.
+  best feasible result. A start runner decides where the starts run: all in one `vmap`
+  here ([`local_starts`][], the default), or in groups, each a Ray task
+  (`jaxloc._design.cluster.ray_starts`).
 - [`jaxloc.evaluate_formation`][] and [`jaxloc.rmse_table`][]: fresh Monte Carlo of the
   refined estimator (new seed) with bootstrap confidence intervals.
 """
 
+import functools as ft
 import math
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -379,6 +383,57 @@ def _search(
     return value0, out
 
 
+def search_starts(formation0, scenario, keys, spec, options: dict, starts: Formation):
+    """The search of [`jaxloc.design_formation`][] from `starts` (a batched
+    [`jaxloc.Formation`][], leading axis: start; any number of them), every start on the
+    draws `keys` and normalized by the objective of `formation0` on them. `options`: the
+    keyword arguments of `_search` (objective, limits, iterations, ...).
+
+    **Returns:** `(value0, (formations, total, value, penalty, history, steps))` as numpy
+    arrays (cheap to send back from a worker): the objective of `formation0`, then per
+    start its result, penalized normalized objective, objective, constraint penalty,
+    objective per iteration `(starts, iterations)` and BFGS steps.
+    """
+    return jax.device_get(_search(formation0, starts, scenario, keys, spec, **options))
+
+
+#: Where a design's starts run: `runner(search, starts)` splits `starts` (a batched
+#: [`jaxloc.Formation`][], leading axis: start) into consecutive groups ([`split_starts`][])
+#: and returns `[search(group) for group in groups]`, in order. `search` is a picklable
+#: [`search_starts`][] with everything but the starts bound.
+StartRunner = Callable[[Callable[[Formation], tuple], Formation], list]
+
+
+def local_starts(search: Callable[[Formation], tuple], starts: Formation) -> list:
+    """The default [`StartRunner`][]: every start in one group, in this process (one
+    `vmap`)."""
+    return [search(starts)]
+
+
+def num_starts(starts: Formation) -> int:
+    """The number of starts of a batched formation (its leaves' leading axis)."""
+    return int(jax.tree.leaves(starts)[0].shape[0])
+
+
+def split_starts(starts: Formation, groups: int) -> list[Formation]:
+    """`starts` (batched, leading axis: start) as `groups` consecutive groups whose
+    sizes differ by at most one (the first ones larger), as `numpy.array_split`."""
+    n = num_starts(starts)
+    if not 1 <= groups <= n:
+        raise ValueError(f"`groups` must be in [1, {n}] (the number of starts); got {groups}.")
+    bounds = np.cumsum([0] + [n // groups + (g < n % groups) for g in range(groups)])
+    return [jax.tree.map(lambda x: x[a:b], starts) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _gather(outs: list) -> tuple:
+    """The groups' results of [`search_starts`][] as one search's: `value0` of the first
+    group (every group computes it from the same formation and draws; on other machines of
+    a cluster it may differ in the last bits, as any other number) and every start's
+    results concatenated in start order."""
+    starts_out = jax.tree.map(lambda *xs: jnp.concatenate(xs), *(o[1] for o in outs))
+    return jnp.asarray(outs[0][0]), starts_out
+
+
 def random_starts(
     formation: Formation, spec: Formation, n: int, *, key: PRNGKeyArray
 ) -> Formation:
@@ -416,6 +471,7 @@ def design_formation(
     feasibility_tol: float = 0.05,
     rtol: float = 1e-5,
     atol: float = 1e-5,
+    runner: StartRunner | None = None,
 ) -> DesignResult:
     r"""Search for the formation minimizing an objective under the design constraints.
 
@@ -449,6 +505,15 @@ def design_formation(
       on drawn moves over-constrain: measured, it shrank the moves to 0.3 m and doubled
       the Monte Carlo error of the overhead camera).
     - `rtol`, `atol`: BFGS tolerances (normalized units).
+    - `runner`: where the starts run (a `jaxloc._design.search.StartRunner`). Default
+      (`None`): all at once in this process, one `vmap`. On a Ray cluster:
+      `jaxloc._design.cluster.ray_starts()` (connect first, e.g. with
+      `jaxloc._study.cluster.connect(address)`) splits the starts into one group per
+      cluster CPU, each group a Ray task running the same search on the same draws,
+      retried if its worker is lost; the results are gathered in start order and the
+      best start is chosen by the same rule. The result equals the local run's to
+      round-off, not always bit for bit (a `vmap` over fewer starts is a different XLA
+      program), so only starts tied to round-off could be chosen differently.
 
     **Returns:** a [`jaxloc.DesignResult`][].
     """
@@ -466,11 +531,14 @@ def design_formation(
     dtype = scenario.base.dtype
     formation = jax.tree.map(lambda x: jnp.asarray(x, dtype), formation)
     starts = random_starts(formation, spec, num_starts, key=k_starts)
-    value0, (forms, total, value, pen, hist, n) = _search(
-        formation, starts, scenario, keys, spec, objective=objective, criterion=criterion,
-        weights=tuple(float(w) for w in weights), limits=limits, strict_steps=bool(strict_steps),
-        penalty_weight=float(penalty_weight), iterations=int(iterations), rtol=rtol, atol=atol,
-    )
+    options = dict(
+        objective=objective, criterion=criterion, weights=tuple(float(w) for w in weights),
+        limits=limits, strict_steps=bool(strict_steps), penalty_weight=float(penalty_weight),
+        iterations=int(iterations), rtol=rtol, atol=atol,
+    )  # fmt: skip
+    search = ft.partial(search_starts, formation, scenario, keys, spec, options)
+    outs = (runner or local_starts)(search, starts)
+    value0, (forms, total, value, pen, hist, n) = _gather(outs)
     ok = np.asarray(pen <= feasibility_tol) & np.isfinite(np.asarray(total))
     score_ = np.where(ok, np.asarray(value), np.inf)
     best = int(np.argmin(score_)) if ok.any() else int(np.argmin(np.asarray(pen)))

@@ -15,6 +15,9 @@ it from the cache) and reuses it for every chunk it runs. The numbers equal a lo
 study's on the same number of JAX devices to the last bit; on another device count they
 agree to round-off, as local studies on different device counts do.
 
+The same pieces run any other list of independent, deterministic tasks ([`map_on_ray`][]),
+e.g. the groups of starts of a formation design (`jaxloc._design.cluster`).
+
 Ray is optional (`pip install "jaxloc[cluster]"`); it is imported only here.
 """
 
@@ -40,8 +43,8 @@ MAX_RETRIES = 3
 
 
 class ClusterError(RuntimeError):
-    """A chunk task failed on the cluster after its retries, or the cluster could not be
-    reached."""
+    """A task (a study's chunk, a design's group of starts) failed on the cluster after
+    its retries, or the cluster could not be reached."""
 
 
 def _ray():
@@ -99,6 +102,19 @@ def describe_cluster() -> str:
     return f"Ray cluster: {cpus} CPUs on {nodes} node{'s' if nodes != 1 else ''}"
 
 
+def cluster_cpus() -> int:
+    """The CPUs of the connected Ray cluster (at least 1)."""
+    return max(1, int(_connected_ray().cluster_resources().get("CPU", 1)))
+
+
+def _connected_ray():
+    """The `ray` module, once this process is connected to a cluster."""
+    ray = _ray()
+    if not ray.is_initialized():
+        raise ClusterError("Ray is not initialized: call `connect()` first.")
+    return ray
+
+
 def _worker_env(cpus_per_task: int) -> dict[str, str]:
     """Environment of the worker processes: JAX configured like this process (float64
     mode, compilation cache) with `cpus_per_task` CPU devices. Set before the worker
@@ -111,6 +127,25 @@ def _worker_env(cpus_per_task: int) -> dict[str, str]:
     if cache:
         env["JAX_COMPILATION_CACHE_DIR"] = str(cache)
     return env
+
+
+def _remote(fn: Callable, cpus_per_task: int, max_retries: int):
+    """`fn` as a Ray remote function: `cpus_per_task` CPUs per task, JAX in the worker
+    configured like this process ([`_worker_env`][]), a task whose worker dies retried
+    `max_retries` times."""
+    if cpus_per_task < 1:
+        raise ValueError(f"`cpus_per_task` must be a positive integer; got {cpus_per_task!r}.")
+    return _connected_ray().remote(fn).options(
+        num_cpus=cpus_per_task,
+        max_retries=max_retries,
+        retry_exceptions=False,  # a Python error is a bug, the same on every attempt
+        runtime_env={"env_vars": _worker_env(cpus_per_task)},
+    )
+
+
+def _default_in_flight(cpus_per_task: int) -> int:
+    """Twice the tasks the cluster runs at once, at least 2."""
+    return max(2, 2 * cluster_cpus() // cpus_per_task)
 
 
 def ray_runner(
@@ -139,20 +174,10 @@ def ray_runner(
     - `task`: the function a task runs, with [`jaxloc.run_chunk`][]'s arguments (default:
       `run_chunk`); e.g. a wrapper that logs, or one that fails on purpose in a test.
     """
-    ray = _ray()
-    if not ray.is_initialized():
-        raise ClusterError("Ray is not initialized: call `connect()` first.")
-    if cpus_per_task < 1:
-        raise ValueError(f"`cpus_per_task` must be a positive integer; got {cpus_per_task!r}.")
-    remote = ray.remote(task or run_chunk).options(
-        num_cpus=cpus_per_task,
-        max_retries=max_retries,
-        retry_exceptions=False,  # a Python error is a bug, the same on every attempt
-        runtime_env={"env_vars": _worker_env(cpus_per_task)},
-    )
+    ray = _connected_ray()
+    remote = _remote(task or run_chunk, cpus_per_task, max_retries)
     if max_in_flight is None:
-        cpus = int(ray.cluster_resources().get("CPU", 1))
-        max_in_flight = max(2, 2 * cpus // cpus_per_task)
+        max_in_flight = _default_in_flight(cpus_per_task)
     scenario_ref = ray.put(scenario)
     methods = tuple(methods)
 
@@ -161,13 +186,59 @@ def ray_runner(
 
     def run(chunks: Sequence[int], on_done: Callable[[], None]) -> Iterator[dict]:
         queue = list(chunks)
-        refs: dict[int, Any] = {}  # chunk -> its task, submitted and not yet handed over
-        while queue and len(refs) < max_in_flight:  # submitted at once, before iteration
-            c = queue.pop(0)
-            refs[c] = submit(c)
+        refs = _submit_first(queue, submit, max_in_flight)  # at once, before iteration
         return _in_order(ray, chunks, queue, refs, submit, on_done, max_retries)
 
     return run
+
+
+def _call(fn: Callable[[Any], Any], item: Any) -> Any:
+    """A task of [`map_on_ray`][]: `fn(item)` (Ray hands `fn` over from its object store)."""
+    return fn(item)
+
+
+def map_on_ray(
+    fn: Callable[[Any], Any],
+    items: Sequence[Any],
+    *,
+    cpus_per_task: int = 1,
+    max_retries: int = MAX_RETRIES,
+    max_in_flight: int | None = None,
+) -> list:
+    """`[fn(item) for item in items]`, each call one Ray task on the connected cluster
+    ([`connect`][]), results in the order of `items`.
+
+    `fn` must be deterministic and picklable (a module-level function, or a
+    `functools.partial` of one: it is put in Ray's object store once, with what it holds,
+    e.g. a scenario). Tasks run as the study's chunks do ([`ray_runner`][]): JAX in each
+    worker configured like this process, `cpus_per_task` CPUs (and JAX devices) per task,
+    a task whose worker dies retried `max_retries` times, at most `max_in_flight` tasks
+    submitted and not yet collected (default: twice the cluster's CPUs divided by
+    `cpus_per_task`). A task that still fails raises [`ClusterError`][].
+    """
+    ray = _connected_ray()
+    remote = _remote(_call, cpus_per_task, max_retries)
+    if max_in_flight is None:
+        max_in_flight = _default_in_flight(cpus_per_task)
+    fn_ref = ray.put(fn)
+
+    def submit(i: int):
+        return remote.remote(fn_ref, items[i])
+
+    order = range(len(items))
+    queue = list(order)
+    refs = _submit_first(queue, submit, max_in_flight)
+    return list(_in_order(ray, order, queue, refs, submit, lambda: None, max_retries))
+
+
+def _submit_first(queue: list, submit: Callable, max_in_flight: int) -> dict:
+    """Submit the first `max_in_flight` tasks of `queue` (removed from it). Returns
+    `{index: task}`, the submitted tasks not yet handed over."""
+    refs = {}
+    while queue and len(refs) < max_in_flight:
+        i = queue.pop(0)
+        refs[i] = submit(i)
+    return refs
 
 
 def _in_order(ray, chunks, queue, refs, submit, on_done, max_retries) -> Iterator[dict]:
@@ -199,7 +270,7 @@ def _in_order(ray, chunks, queue, refs, submit, on_done, max_retries) -> Iterato
             for r in refs.values():
                 ray.cancel(r, force=True)
         raise ClusterError(
-            f"a chunk task failed on the Ray cluster (a lost worker is retried "
+            f"a task failed on the Ray cluster (a lost worker is retried "
             f"{max_retries} times, a Python error is not): "
             f"{' '.join(str(e).split())[:300]}"
         ) from None
