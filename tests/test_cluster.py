@@ -29,6 +29,7 @@ def test_a_study_on_two_ray_workers_survives_a_lost_task(tmp_path):
     print(run.stdout)
 
 
+@pytest.mark.slow  # ~3 min with a warm compilation cache, 4-5 cold: the slow run of CI
 @pytest.mark.timeout(900)
 def test_a_design_on_two_ray_workers_is_the_local_design(tmp_path):
     # Issue 22: `design_formation(..., runner=ray_starts())` and `jaxloc design --ray` run
