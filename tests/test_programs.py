@@ -10,7 +10,7 @@ import textwrap
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxloc._core.programs import program_key
+from jaxloc._core.programs import describe, program_key
 
 
 SCRIPT = textwrap.dedent(
@@ -78,3 +78,12 @@ def test_the_key_names_what_changes_the_trace():
     assert key != program_key("toy", "v1", [jnp.zeros(5), jnp.asarray(3.0)])
     with jax.enable_x64(False):
         assert key != program_key("toy", "v1", args)
+
+
+def test_a_static_description_holds_every_value():
+    import jaxloc
+
+    assert describe(jaxloc.Limits()) == describe(jaxloc.Limits())
+    assert describe(jaxloc.Limits()) != describe(jaxloc.Limits(separation=0.2))
+    assert describe((np.zeros(2), "a")) != describe((np.ones(2), "a"))  # arrays by value
+    assert describe((1.0, None)) != describe((1.0,))  # structure

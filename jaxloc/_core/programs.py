@@ -28,8 +28,10 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
-from jax.sharding import NamedSharding, PartitionSpec
+import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec, SingleDeviceSharding
 
 from .files import atomic_write
 
@@ -74,15 +76,24 @@ def _versions() -> str:
     return ",".join(out)
 
 
-def program_key(name: str, static: str, args: Any) -> str:
+def describe(static: Any) -> str:
+    """A deterministic text of a pytree of static values (structure, and every leaf's
+    value; arrays by their values), for the `static` of [`program_key`][]."""
+    leaves, tree = jax.tree.flatten(static)
+    values = [np.asarray(x).tolist() if eqx.is_array(x) else x for x in leaves]
+    return repr((str(tree), values))
+
+
+def program_key(name: str, static: str, args: Any, devices=None) -> str:
     """Digest naming the export of program `name` with static description `static` (a
     deterministic text naming everything the function closes over that changes its
     trace, e.g. a scenario's static fields and a chunk size) called on `args` (arrays or
-    shape-dtype structs) in this process's configuration."""
+    shape-dtype structs) in this process's configuration, on `devices` (default: every
+    local device)."""
     leaves, tree = jax.tree.flatten(args)
     avals = [(tuple(x.shape), str(x.dtype)) for x in leaves]
     config = [(c, str(getattr(jax.config, c))) for c in PROGRAM_CONFIG]
-    devices = [(d.platform, d.device_kind) for d in jax.devices()]
+    devices = [(d.platform, d.device_kind) for d in (devices or jax.devices())]
     text = repr((name, static, str(tree), avals, config, devices, _versions(), source_digest()))
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
@@ -132,17 +143,29 @@ class Program:
       static description and `args`.
     - `args`: example arguments (arrays or `jax.ShapeDtypeStruct`), fixing the shapes.
     - `compiler_options`: XLA options for its compilation.
-
-    Every argument is replicated over all local devices (the program shards its work
-    itself, e.g. with `shard_map`). Call [`compile`][jaxloc._core.programs.Program.compile]
+    - `replicated`: every argument replicated over all local devices (the program shards
+      its work itself, e.g. with `shard_map`); `False`: the program runs on the default
+      device alone.
+ Call [`compile`][jaxloc._core.programs.Program.compile]
     ahead (e.g. in a thread) or let the first call compile it.
     """
 
-    def __init__(self, name: str, fn: Callable, key: str, args: Any, *, compiler_options=None):
+    def __init__(
+        self,
+        name: str,
+        fn: Callable,
+        key: str,
+        args: Any,
+        *,
+        compiler_options=None,
+        replicated: bool = True,
+    ):
         self.name = name
-        self._sharding = NamedSharding(
-            jax.sharding.Mesh(jax.devices(), ("devices",)), PartitionSpec()
-        )
+        if replicated:
+            mesh = jax.sharding.Mesh(np.array(jax.devices()), ("devices",))
+            self._sharding = NamedSharding(mesh, PartitionSpec())
+        else:
+            self._sharding = SingleDeviceSharding(jax.devices()[0])
         store = _store()
         path = None if store is None else os.path.join(store, f"{name}-{key}.jaxexport")
         self._example = self._replicated(_structs(args))
@@ -187,14 +210,24 @@ _PROGRAMS_LOCK = threading.Lock()
 
 
 def cached_program(
-    name: str, make_fn: Callable[[], Callable], static: str, args: Any, *, compiler_options=None
+    name: str,
+    make_fn: Callable[[], Callable],
+    static: str,
+    args: Any,
+    *,
+    compiler_options=None,
+    replicated: bool = True,
 ) -> Program:
     """The [`Program`][jaxloc._core.programs.Program] `name` for `static` and the shapes
     of `args`, made once per process (`make_fn()` builds its function only then)."""
-    key = program_key(name, static, args)
+    devices = None if replicated else jax.devices()[:1]
+    key = program_key(name, repr((static, replicated)), args, devices)
     with _PROGRAMS_LOCK:
         if key not in _PROGRAMS:
-            _PROGRAMS[key] = Program(name, make_fn(), key, args, compiler_options=compiler_options)
+            _PROGRAMS[key] = Program(
+                name, make_fn(), key, args, compiler_options=compiler_options,
+                replicated=replicated,
+            )  # fmt: skip
         return _PROGRAMS[key]
 
 

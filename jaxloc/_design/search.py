@@ -29,6 +29,7 @@ import optimistix as optx
 from jaxtyping import Array, Float, PRNGKeyArray, Scalar
 
 from .._core.linalg import logdet3
+from .._core.programs import cached_program, describe
 from .._core.results import RESULTS
 from .._cycle.layout import CAMERAS
 from .._model.covariance import cycle_crlb
@@ -330,10 +331,6 @@ def _fixed_length_minimise(solver, f, z0, dtype, iterations: int):
     return z, n, hist
 
 
-# The large-program XLA options (classic emitters, LLVM -O1): on a sequential design of 4
-# starts x 8 draws x 30 iterations, compile 54 -> 43 s; the search runs as fast (0.6 s)
-# and ends at the same objective (to 1e-13 relative).
-@eqx.filter_jit(compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
 def _search(
     formation0: Formation,
     starts: Formation,
@@ -394,7 +391,40 @@ def search_starts(formation0, scenario, keys, spec, options: dict, starts: Forma
     start its result, penalized normalized objective, objective, constraint penalty,
     objective per iteration `(starts, iterations)` and BFGS steps.
     """
-    return jax.device_get(_search(formation0, starts, scenario, keys, spec, **options))
+    program, args = _search_program(formation0, starts, scenario, keys, spec, options)
+    value0, form_leaves, *per_start = program(args)
+    forms = jax.tree.unflatten(jax.tree.structure(starts), form_leaves)
+    return jax.device_get((value0, (forms, *per_start)))
+
+
+def _search_program(formation0, starts, scenario, keys, spec, options: dict):
+    """The search as a program kept traced on disk (`jaxloc._core.programs`; a later
+    process loads it instead of tracing it), on the default device, with its arguments:
+    the arrays of the formations and the scenario, and the draws' key data. The large
+    program XLA options (classic emitters, LLVM -O1): on a sequential design of 4 starts
+    x 8 draws x 30 iterations, compile 54 -> 43 s; the search runs as fast (0.6 s) and
+    ends at the same objective (to 1e-13 relative)."""
+    dynamic, rest = eqx.partition((formation0, starts, scenario), eqx.is_array)
+    arrays, tree = jax.tree.flatten(dynamic)
+    impl = jr.key_impl(keys)
+
+    def make_fn():
+        def search(args):
+            arrays, key_data = args
+            f0, st, sc = eqx.combine(jax.tree.unflatten(tree, arrays), rest)
+            draws = jr.wrap_key_data(key_data, impl=impl)
+            value0, (forms, *per_start) = _search(f0, st, sc, draws, spec, **options)
+            return value0, jax.tree.leaves(forms), *per_start
+
+        return search
+
+    static = describe((rest, spec, sorted(options.items()), str(tree), str(impl)))
+    args = (arrays, jr.key_data(keys))
+    program = cached_program(
+        "design_search", make_fn, static, args,
+        compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS, replicated=False,
+    )  # fmt: skip
+    return program, args
 
 
 #: Where a design's starts run: `runner(search, starts)` splits `starts` (a batched
