@@ -16,17 +16,23 @@ import pytest
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-@pytest.mark.timeout(900)
-def test_a_study_on_two_ray_workers_survives_a_lost_task(tmp_path):
+def _run_cluster_script(script: str, tmp_path, timeout: float) -> None:
+    """Run `tests/<script>` in a process of its own; it must pass every check and have
+    seen a worker process die (and its task retried)."""
     run = subprocess.run(
-        [sys.executable, os.path.join(HERE, "cluster_study.py"), str(tmp_path)],
-        capture_output=True, text=True, timeout=840,
+        [sys.executable, os.path.join(HERE, script), str(tmp_path)],
+        capture_output=True, text=True, timeout=timeout,
         env={**os.environ, "RAY_ENABLE_AUTO_CONNECT": "0"},
     )  # fmt: skip
     assert run.returncode == 0, f"{run.stdout}\n{run.stderr}"
     assert "all checks passed" in run.stdout
     assert os.path.exists(tmp_path / "crashed_1")  # the worker process did die
     print(run.stdout)
+
+
+@pytest.mark.timeout(900)
+def test_a_study_on_two_ray_workers_survives_a_lost_task(tmp_path):
+    _run_cluster_script("cluster_study.py", tmp_path, timeout=840)
 
 
 @pytest.mark.slow  # ~3 min with a warm compilation cache, 4-5 cold: the slow run of CI
@@ -36,12 +42,4 @@ def test_a_design_on_two_ray_workers_is_the_local_design(tmp_path):
     # the starts in two tasks of two and pick the local run's start and formation. Three
     # programs compile (the local search, and the two-start search in both workers at
     # once): beside a busy test run on 2 cores that took more than 840 s.
-    run = subprocess.run(
-        [sys.executable, os.path.join(HERE, "cluster_design.py"), str(tmp_path)],
-        capture_output=True, text=True, timeout=1740,
-        env={**os.environ, "RAY_ENABLE_AUTO_CONNECT": "0"},
-    )  # fmt: skip
-    assert run.returncode == 0, f"{run.stdout}\n{run.stderr}"
-    assert "all checks passed" in run.stdout
-    assert os.path.exists(tmp_path / "crashed_1")  # the worker process did die
-    print(run.stdout)
+    _run_cluster_script("cluster_design.py", tmp_path, timeout=1740)

@@ -27,7 +27,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array
 
-from .._core.programs import cached_program, Program
+from .._core.programs import cached_program, describe, Program
 from .._sim.scenario import Scenario
 from .._sim.scenario_file import scenario_to_dict
 from .chunks import (
@@ -147,7 +147,7 @@ def chunk_program(
 
         return chunk
 
-    description = repr((str(jax.tree.structure(rest)), str(tree), padded, static, tuple(fields)))
+    description = repr((describe(rest), str(tree), padded, static, tuple(fields)))
     args = (arrays, jax.ShapeDtypeStruct((), jnp.uint32), jax.ShapeDtypeStruct((), jnp.int32))
     return cached_program(
         name, make_fn, description, args, compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS
