@@ -90,6 +90,11 @@ def test_one_step_with_a_pose_prior_and_the_scale(cycle):
     d = np.linalg.norm(np.asarray(est.roots)[:, 4:] - np.asarray(T_body)[4:], axis=-1)
     d[~np.asarray(est.roots_ok)] = np.inf
     assert int(est.chosen) == int(np.argmin(d))
+    # Each root's prior misfit: finite for the valid roots, least for the chosen one.
+    cost = np.asarray(est.root_cost)
+    assert cost.shape == (4,)
+    assert np.all(np.isfinite(cost) == np.asarray(est.roots_ok))
+    assert int(est.chosen) == int(np.argmin(cost))
     # The formation at the estimated scale: C1 at the origin, C2 and C3 near the truth.
     np.testing.assert_allclose(est.T_world_body[0], jaxlie.SE3.identity().wxyz_xyz, atol=1e-9)
     true_ground = np.asarray(truth.poses.T_world_body.wxyz_xyz[0, :, 4:])

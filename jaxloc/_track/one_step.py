@@ -34,6 +34,8 @@ problem at the true poses: unknowns C2's and C3's body poses and the climbing ro
 mutual and overhead pixels of the formation (`jaxloc._model.measurements`), and the priors.
 """
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -344,22 +346,42 @@ def _retract(x, delta):
     return R @ so3_exp(delta[3:6]), p + R @ delta[:3], d + delta[6]
 
 
-@eqx.filter_jit
-def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
-    dtype = snapshot.overhead.dtype
-    mount = rig.mounts[0].astype(dtype)
-    R_m, t_m = rotations(mount), mount[4:]
-    # 1. The formation up to scale (circumdiameter 1), C1's body frame.
+class _Roots(NamedTuple):
+    """The P3P roots of the overhead bearings at unit scale and the prior's choice."""
+
+    bearings: Float[Array, "3 3"]  # unusable sightings replaced by the optical axis
+    usable: Bool[Array, " 3"]
+    nonfinite: Bool[Array, ""]  # a sighting marked visible is not finite
+    R_wb: Float[Array, "4 3 3"]  # each root's body rotation
+    p_roots: Float[Array, "4 3"]  # each root's body position at its best scale
+    d_root: Float[Array, " 4"]  # each root's best scale
+    cost: Float[Array, " 4"]  # prior misfit, inf if invalid
+    valid: Bool[Array, " 4"]
+    any_p3p: Bool[Array, ""]  # P3P gave a root at all
+    any_scaled: Bool[Array, ""]  # a P3P root has a positive scale from the prior
+    chosen: Int[Array, ""]
+    ambiguous: Bool[Array, ""]
+
+
+def _formation(snapshot: Snapshot):
+    """The formation up to scale (circumdiameter 1) in C1's body frame from the mutual
+    bearings: the mutual-localization result, body poses `(3, 7)`, origins `(3, 3)`, body
+    rotations `(3, 3, 3)` and the mean body z (`up`)."""
     mutual = mutual_localization(snapshot.mutual, 0, throw=False)
     T_ref = mutual.T_ref_body.wxyz_xyz
-    u = T_ref[:, 4:]
     R_robots = rotations(T_ref)
     up = safe_normalize(jnp.sum(R_robots[:, :, 2], axis=0))
-    # 2. P3P on the overhead bearings (unit scale).
+    return mutual, T_ref, T_ref[:, 4:], R_robots, up
+
+
+def _choose_root(snapshot: Snapshot, u, up, mount, prior: OneStepPrior) -> _Roots:
+    """P3P on the overhead bearings at unit scale; each root's best scale and prior
+    misfit; the root of least misfit and whether another is within `AMBIGUITY_MARGIN`."""
+    dtype = snapshot.overhead.dtype
+    R_m, t_m = rotations(mount), mount[4:]
     vis = snapshot.overhead_visible
     finite = jnp.all(jnp.isfinite(snapshot.overhead), axis=-1)
     usable = vis & finite
-    nonfinite = jnp.any(vis & ~finite)
     b = jnp.where(usable[:, None], snapshot.overhead, jnp.array([0.0, 0.0, 1.0], dtype))
     sol = p3p(u, b)
     Tcw = sol.poses.wxyz_xyz
@@ -370,13 +392,25 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     valid = sol.valid & scaled
     cost = jnp.where(valid, cost, jnp.inf)
     chosen = jnp.argmin(cost)
-    best = cost[chosen]
     second = jnp.min(jnp.where(jnp.arange(4) == chosen, jnp.inf, cost))
-    ambiguous = second - best < AMBIGUITY_MARGIN
     p_roots = d_root[:, None] * c_unit - jnp.einsum("kij,j->ki", R_wb, t_m)
-    # 3. Refinement of the chosen root: pose and scale, pixels and priors.
+    return _Roots(
+        b, usable, jnp.any(vis & ~finite), R_wb, p_roots, d_root, cost, valid,
+        jnp.any(sol.valid), jnp.any(scaled & sol.valid), chosen,
+        second - cost[chosen] < AMBIGUITY_MARGIN,
+    )  # fmt: skip
+
+
+def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Roots, u,
+                 R_robots, up, mount):  # fmt: skip
+    """Maximum a posteriori pose and scale from the chosen root: the three overhead pixels
+    and the priors, whitened. Returns the solver's output, its start flag, the covariance
+    `(7, 7)` with its flag, and the final Gauss--Newton step."""
+    dtype = snapshot.overhead.dtype
+    R_m, t_m = rotations(mount), mount[4:]
+    usable = roots.usable
     pixel_ok = jnp.all(jnp.isfinite(snapshot.overhead_pixels), axis=-1)
-    derived = rig.overhead.project(b)
+    derived = rig.overhead.project(roots.bearings)
     pixels = jnp.where(usable[:, None], jnp.where(pixel_ok[:, None], snapshot.overhead_pixels,
                                                   derived), 0.0)  # fmt: skip
     pb = _Problem(
@@ -384,11 +418,10 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
         jnp.where(usable, pixel_weights(rig, dtype)[0], 0.0), R_m, t_m,
         adjoint(inverse(jaxlie.SE3(mount)).wxyz_xyz), rotations(prior.pose), prior.pose[4:],
     )  # fmt: skip
-    count = jnp.sum(usable)
-    start_ok = jnp.isfinite(best) & (count == 3) & ~nonfinite
-    eye = jnp.eye(3, dtype=dtype)
-    x0 = (jnp.where(start_ok, R_wb[chosen], eye), jnp.where(start_ok, p_roots[chosen], 0.0),
-          jnp.where(start_ok, d_root[chosen], 1.0))  # fmt: skip
+    k = roots.chosen
+    start_ok = jnp.isfinite(roots.cost[k]) & (jnp.sum(usable) == 3) & ~roots.nonfinite
+    x0 = (jnp.where(start_ok, roots.R_wb[k], jnp.eye(3, dtype=dtype)),
+          jnp.where(start_ok, roots.p_roots[k], 0.0), jnp.where(start_ok, roots.d_root[k], 1.0))
     # Levenberg--Marquardt from the root (it fits the bearings exactly and its scale
     # already minimizes the linearized prior misfit). Along the weakly observed combination
     # of a sideways shift and a tilt of the camera, the prior pulls and the pixels are
@@ -408,12 +441,21 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
         rtol=1e-6, atol=1e-6, active=start_ok, lam0=1e-4, decrease_tol=NEGLIGIBLE_DECREASE,
         final_gauss_newton=True,
     )  # fmt: skip
-    cost, H, g = out.normal  # before the final Gauss--Newton step
+    _, H, g = out.normal  # before the final Gauss--Newton step
     cov, cov_ok = unrolled_spd_inverse(H)
     step = jnp.where(cov_ok & start_ok, -cov @ g, 0.0)
-    R_b, p_b, d = out.x
-    converged = cov_ok & start_ok & out.converged
-    # 4. Gates.
+    return out, start_ok, cov, cov_ok, step
+
+
+def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, cov, cov_ok,
+          step, u):  # fmt: skip
+    """The estimate's [`FitCheck`][] and result: the solver's status, observability (its
+    position bound against the formation's size) and the chi-square gate, then
+    `ambiguous`."""
+    dtype = cov.dtype
+    cost, _, g = out.normal
+    R_b, _, d = out.x
+    count = jnp.sum(roots.usable)
     prior_rows = (
         6 * jnp.any(prior.pose_sqrt_information != 0)
         + (prior.height_weight > 0) + 2 * (prior.tilt_weight > 0) + (prior.perimeter_weight > 0)
@@ -426,33 +468,47 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     size = jnp.sqrt(jnp.mean(jnp.sum((u - jnp.mean(u, 0, keepdims=True)) ** 2, -1))) * d
     observable = (cov_ok & (pos_var <= (MAX_RELATIVE_POSITION_BOUND * size) ** 2)
                   & (rot_var <= MAX_ROTATION_BOUND**2) & (dof > 0))  # fmt: skip
+    converged = cov_ok & start_ok & out.converged
     solver = RESULTS.where(cov_ok | ~start_ok, RESULTS.successful, RESULTS.unobservable)
     solver = RESULTS.where(converged | ~start_ok | ~cov_ok, solver,
                            RESULTS.nonlinear_max_steps_reached)  # fmt: skip
-    solver = RESULTS.where(jnp.any(valid), solver, RESULTS.no_valid_solution)
-    solver = RESULTS.where(jnp.any(scaled & sol.valid) | ~jnp.any(sol.valid), solver,
+    solver = RESULTS.where(jnp.any(roots.valid), solver, RESULTS.no_valid_solution)
+    solver = RESULTS.where(roots.any_scaled | ~roots.any_p3p, solver,
                            RESULTS.scale_unobservable)  # fmt: skip
     solver = RESULTS.where(count == 3, solver, RESULTS.too_few_points)
     solver = RESULTS.where(mutual.result == RESULTS.successful, solver, mutual.result)
-    solver = RESULTS.where(nonfinite, RESULTS.nonfinite_observation, solver)
+    solver = RESULTS.where(roots.nonfinite, RESULTS.nonfinite_observation, solver)
     result = RESULTS.where((solver == RESULTS.successful) & ~observable, RESULTS.unobservable,
                            solver)  # fmt: skip
     result = RESULTS.where((result == RESULTS.successful) & ~(chi2 <= limit),
                            RESULTS.inconsistent_fit, result)  # fmt: skip
-    result = RESULTS.where((result == RESULTS.successful) & ambiguous, RESULTS.ambiguous, result)
+    result = RESULTS.where((result == RESULTS.successful) & roots.ambiguous, RESULTS.ambiguous,
+                           result)  # fmt: skip
+    return FitCheck(solver, cost, chi2, dof, limit, observable), result
+
+
+@eqx.filter_jit
+def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
+    dtype = snapshot.overhead.dtype
+    mount = rig.mounts[0].astype(dtype)
+    mutual, T_ref, u, R_robots, up = _formation(snapshot)
+    roots = _choose_root(snapshot, u, up, mount, prior)
+    out, start_ok, cov, cov_ok, step = _refine_root(snapshot, rig, prior, roots, u, R_robots,
+                                                    up, mount)  # fmt: skip
+    checks, result = _gate(rig, prior, mutual, roots, out, start_ok, cov, cov_ok, step, u)
+    R_b, p_b, d = out.x
     # Outputs as poses (one batched matrix -> quaternion conversion).
     quats = jax.vmap(lambda R: jaxlie.SO3.from_matrix(R).wxyz)(
-        jnp.concatenate([R_b[None], R_wb])
+        jnp.concatenate([R_b[None], roots.R_wb])
     ).astype(dtype)
     T_climber = jnp.concatenate([quats[0], p_b])
-    roots = jnp.concatenate([quats[1:], p_roots], axis=1)
-    roots = jnp.where(valid[:, None], roots, identity_params(dtype)[None])
+    T_roots = jnp.concatenate([quats[1:], roots.p_roots], axis=1)
+    T_roots = jnp.where(roots.valid[:, None], T_roots, identity_params(dtype)[None])
     T_body = jnp.concatenate([T_ref[:, :4], d * u], axis=1)
-    checks = FitCheck(solver, cost, chi2, dof, limit, observable)
     return OneStepEstimate(
         T_climber, overhead_of_body(T_climber, mount), T_body, d, result,
-        jnp.where(cov_ok, cov, 0.0), roots, valid, cost, chosen.astype(jnp.int32), checks,
-        out.num_steps + 1,
+        jnp.where(cov_ok, cov, 0.0), T_roots, roots.valid, roots.cost,
+        roots.chosen.astype(jnp.int32), checks, out.num_steps + 1,
     )  # fmt: skip
 
 

@@ -302,21 +302,14 @@ def render_markers(
     rng = numpy_rng(key)
     w, h = camera.image_size
     img = _background(rng, h, w, background_level)
-    ring_mask = None
-    if isinstance(camera, OmniCamera):
-        cx, cy, r_in, r_out = annulus_of(camera)
-        yy, xx = np.mgrid[0:h, 0:w]
-        rr = np.hypot(xx - cx, yy - cy)
-        ring_mask = (rr >= r_in - 6) & (rr <= r_out + 6)
-        img[~ring_mask] = 8.0  # outside the mirror: dark
-        img[rr < r_in - 6] = 45.0  # the robot's own body reflected at the centre
-    truth: list[dict[str, Any]] = []
+    ring_mask = _mirror_frame(img, camera)
+    markers = None
     keep_out = []
     if n:
         poly, center, ok = _silhouettes(camera, jnp.asarray(p), radius)
-        poly, center, ok = np.asarray(poly), np.asarray(center), np.asarray(ok)
+        markers = np.asarray(poly), np.asarray(center), np.asarray(ok)
         # Keep distractors clear of every marker's outline (centre and rim points).
-        keep_out = [q for i in range(n) if ok[i] for q in poly[i][::8]]
+        keep_out = [q for i in range(n) if markers[2][i] for q in markers[0][i][::8]]
     distractor_info = _draw_distractors(img, rng, distractors, ring_mask, keep_out)
     objs = _object_silhouettes(camera, objects)
     occ_layers = _occluder_coverage(camera, occluders, (h, w), ring_mask)
@@ -324,44 +317,70 @@ def render_markers(
     for _, y0, x0, cov in occ_layers:
         patch = occ[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
         np.maximum(patch, cov, out=patch)
-    # Markers and objects, far to near (the nearer hides the farther).
-    depth = [(float(np.linalg.norm(p[i])), "marker", i) for i in range(n)]
-    depth += [(float(np.linalg.norm(o["center"])), "object", j) for j, o in enumerate(objs)]
-    rec: dict[int, dict[str, Any]] = {}
-    for _, kind, i in sorted(depth, key=lambda d: -d[0]):
-        if kind == "object":
-            o = objs[i]
-            if o["ok"]:
-                o["entry"].update(_draw_sphere(img, o["poly"], o["bgr"], ring_mask, occ))
-            continue
-        name = names[i] if names is not None else str(i)
-        entry = {"name": name, "visible": False, "center_px": None, "centroid_px": None,
-                 "area_px": 0.0, "bgr": list(colors[i])}  # fmt: skip
-        rec[int(i)] = entry
-        if not ok[i]:
-            continue
-        entry["center_px"] = center[i].tolist()
-        pu, pv = poly[i][:, 0], poly[i][:, 1]
-        cut = bool(np.any((pu < 0.5) | (pu > w - 1.5) | (pv < 0.5) | (pv > h - 1.5)))
-        if ring_mask is not None:
-            rr_p = np.hypot(pu - cx, pv - cy)
-            cut = cut or bool(np.any((rr_p < r_in - 6) | (rr_p > r_out + 6)))
-        entry["truncated"] = cut
-        entry.update(_draw_sphere(img, poly[i], colors[i], ring_mask, occ))
-        if occ_layers and "occluded" not in entry:
-            entry["occluded"] = 0.0
+    names = [str(i) for i in range(n)] if names is None else names
+    truth = _paint_far_to_near(img, camera, p, markers, objs, colors, names, ring_mask, occ,
+                               bool(occ_layers))  # fmt: skip
     # Occluders last: in front of every marker and object.
     for bgr, y0, x0, cov in occ_layers:
         _paint(img, y0, x0, cov, bgr)
-    # Nearer markers are painted later and hide farther ones; the truth keeps each
-    # marker's own (unoccluded) silhouette: overlapping markers are not a centroid test.
-    truth = [rec[i] for i in range(n)]
     gain = _lighting(rng, h, w, lighting)
     image = _finish(img, rng, blur_sigma, noise_sigma, gain)
     if info is not None:
         info["distractors"] = distractor_info
         info["objects"] = [o["entry"] for o in objs]
     return image, truth
+
+
+def _mirror_frame(img: np.ndarray, camera: AbstractCamera) -> np.ndarray | None:
+    """For an omnidirectional camera, darken `img` outside the mirror's annulus (and the
+    robot's own reflection inside it) and return the annulus mask (with a 6 px margin);
+    `None` for any other camera."""
+    if not isinstance(camera, OmniCamera):
+        return None
+    h, w = img.shape[:2]
+    cx, cy, r_in, r_out = annulus_of(camera)
+    yy, xx = np.mgrid[0:h, 0:w]
+    rr = np.hypot(xx - cx, yy - cy)
+    ring_mask = (rr >= r_in - 6) & (rr <= r_out + 6)
+    img[~ring_mask] = 8.0  # outside the mirror: dark
+    img[rr < r_in - 6] = 45.0  # the robot's own body reflected at the centre
+    return ring_mask
+
+
+def _paint_far_to_near(img, camera, p, markers, objs, colors, names, ring_mask, occ,
+                       occluded) -> list[dict[str, Any]]:  # fmt: skip
+    """Paint the markers (silhouettes `markers = (poly, center, ok)` of the centres `p`)
+    and the other objects far to near, so that the nearer hides the farther, and return
+    each marker's truth (see [`render_markers`][]), in the markers' order. The truth keeps
+    each marker's own silhouette: overlapping markers are not a centroid test."""
+    h, w = img.shape[:2]
+    depth = [(float(np.linalg.norm(p[i])), "marker", i) for i in range(len(p))]
+    depth += [(float(np.linalg.norm(o["center"])), "object", j) for j, o in enumerate(objs)]
+    truth: dict[int, dict[str, Any]] = {}
+    for _, kind, i in sorted(depth, key=lambda d: -d[0]):
+        if kind == "object":
+            o = objs[i]
+            if o["ok"]:
+                o["entry"].update(_draw_sphere(img, o["poly"], o["bgr"], ring_mask, occ))
+            continue
+        entry = {"name": names[i], "visible": False, "center_px": None, "centroid_px": None,
+                 "area_px": 0.0, "bgr": list(colors[i])}  # fmt: skip
+        truth[int(i)] = entry
+        poly, center, ok = markers
+        if not ok[i]:
+            continue
+        entry["center_px"] = center[i].tolist()
+        pu, pv = poly[i][:, 0], poly[i][:, 1]
+        cut = bool(np.any((pu < 0.5) | (pu > w - 1.5) | (pv < 0.5) | (pv > h - 1.5)))
+        if ring_mask is not None:
+            cx, cy, r_in, r_out = annulus_of(camera)
+            rr_p = np.hypot(pu - cx, pv - cy)
+            cut = cut or bool(np.any((rr_p < r_in - 6) | (rr_p > r_out + 6)))
+        entry["truncated"] = cut
+        entry.update(_draw_sphere(img, poly[i], colors[i], ring_mask, occ))
+        if occluded and "occluded" not in entry:
+            entry["occluded"] = 0.0
+    return [truth[i] for i in range(len(p))]
 
 
 def _draw_sphere(img, poly, bgr, ring_mask, occ) -> dict[str, Any]:
