@@ -35,7 +35,7 @@ def test_a_study_on_two_ray_workers_survives_a_lost_task(tmp_path):
     _run_cluster_script("cluster_study.py", tmp_path, timeout=840)
 
 
-@pytest.mark.slow  # ~3 min with a warm compilation cache, 4-5 cold: the slow run of CI
+@pytest.mark.slow  # 149 s with its programs not yet compiled (idle): the slow run of CI
 @pytest.mark.timeout(1800)
 def test_a_design_on_two_ray_workers_is_the_local_design(tmp_path):
     # Issue 22: `design_formation(..., runner=ray_starts())` and `jaxloc design --ray` run
