@@ -244,30 +244,3 @@ def test_nan_overhead_bearing_marked_visible_is_nonfinite():
         bad.mutual, bad.overhead, bad.odometry, bad.odometry_sigma, "sequential"
     )
     assert not bool(missing.overhead_visible[1, 1])
-
-
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_information_singular_to_rounding_is_not_observable(dtype):
-    """Issue 17 (missing sightings): the Cholesky of an information matrix that is
-    singular to rounding can succeed (its pivot a tiny positive number), and the gates
-    took it as observable. The relative test (`nonsingular_information`: the trace of
-    the Jacobi-scaled inverse) rejects it, badly scaled or not, and keeps a merely
-    ill-scaled matrix. (float32: the floor is `eps` itself, so only the second part.)"""
-    from jaxloc._core.linalg import spd_inverse
-    from jaxloc._model.gates import min_scaled_eigenvalue, nonsingular_information
-
-    scale = jnp.asarray([1e4, 1e-3, 1.0], dtype)
-    if dtype == jnp.float64:
-        tiny = 1e-15  # a few eps: singular to rounding
-        base = jnp.asarray([[1.0, 1.0, 0.0], [1.0, 1.0 + tiny, 0.0], [0.0, 0.0, 1.0]], dtype)
-        F = base * scale[:, None] * scale[None, :]
-        inverse, ok = spd_inverse(F)
-        assert bool(ok)  # the Cholesky alone passes it...
-        assert not bool(nonsingular_information(F, inverse, ok))  # ...the relative test not
-    # Scaled smallest eigenvalue 1e-3, ill-scaled: kept.
-    good = jnp.asarray([[1.0, 0.999, 0.0], [0.999, 1.0, 0.0], [0.0, 0.0, 1.0]], dtype)
-    G = good * scale[:, None] * scale[None, :]
-    inverse, ok = spd_inverse(G)
-    assert min_scaled_eigenvalue(dtype) < 1e-3 / 1e3
-    assert bool(nonsingular_information(G, inverse, ok))
-    assert not bool(nonsingular_information(G, jnp.zeros_like(G), jnp.array(False)))

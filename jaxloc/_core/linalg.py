@@ -140,20 +140,6 @@ def spd_inverse(F: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Bool[Array
     return jnp.where(ok, inv, 0.0), ok
 
 
-def scaled_inverse_trace(
-    F: Float[Array, "n n"], inverse: Float[Array, "n n"]
-) -> Float[Array, ""]:
-    """The trace of the Jacobi-scaled (unit-diagonal) `F`'s inverse, from `F` and its
-    inverse (e.g. [`spd_inverse`][]'s): `sum_i F_ii (F^-1)_ii`. Its reciprocal bounds the
-    smallest eigenvalue `lambda` of the scaled `F` within a factor `n`: `lambda / n <=
-    1 / trace <= lambda`. A relative test of singularity that a Cholesky's pivots are not:
-    an exactly singular `F` can factor with a pivot rounded to a tiny positive number,
-    and then this trace is ~1/eps. `inf` where `inverse` is zero (not positive definite)
-    or not finite."""
-    t = jnp.sum(jnp.diag(F) * jnp.diag(inverse))
-    return jnp.where(jnp.isfinite(t) & (t > 0), t, jnp.inf)
-
-
 def unrolled_cholesky_solve(
     H: Float[Array, "n n"], g: Float[Array, " n"]
 ) -> tuple[Float[Array, " n"], Bool[Array, ""]]:

@@ -17,11 +17,7 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   a wrong closed-form branch, an outlier, swapped images. With `dof <= 0` (too few
   measurements to test anything) it is `unobservable`.
 - **Observability**: the Fisher information `J^T J` at the estimate must be positive
-  definite beyond rounding (Jacobi-scaled to a unit diagonal, its smallest eigenvalue
-  above `MIN_SCALED_EIGENVALUE`, tested through the trace of the scaled inverse: a
-  Cholesky alone passes an exactly singular matrix whose pivot rounds to a tiny positive
-  number, e.g. a rotation no sighting present touches at a placement that is not an
-  end-of-cycle pose) and the bound it implies for every end-of-cycle pose sensible for the
+  definite and the bound it implies for every end-of-cycle pose sensible for the
   formation: position RMSE below `MAX_RELATIVE_POSITION_BOUND` times the formation's
   size (the RMS distance of the ground robots' placements from their centroid) and
   rotation RMSE below `MAX_ROTATION_BOUND`. Singular or absurd: `unobservable` (too
@@ -37,7 +33,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._core.least_squares import solve_spd
-from .._core.linalg import scaled_inverse_trace, spd_inverse
+from .._core.linalg import spd_inverse
 from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_placements
 from .._cycle.layout import placement_ids
@@ -58,14 +54,6 @@ _Z_999 = 3.0902  # standard normal quantile of CHI2_QUANTILE
 #: smaller than the noise (by the leverage of the sightings), so clean sightings are
 #: rejected at a rate below 0.1% each.
 SIGHTING_LIMIT = {"gaussian": 13.8155, "paper": 21.6551}
-#: Smallest eigenvalue of the Jacobi-scaled (unit-diagonal) Fisher information of an
-#: observable estimate, in float64 (the rule of `jaxloc._study.robustness.nonsingular`):
-#: an exactly singular direction sits at rounding level, 1e-16-1e-13. Clean cycles of the
-#: paper's scenario sit far above: smallest 2.6e-5 over 4096 refined sequential cycles
-#: (1% quantile 1.1e-4, median 1.9e-4). In float32 the floor is `eps` (1.2e-7; a
-#: floor with float64's margin over rounding would reject clean cycles there); see
-#: [`min_scaled_eigenvalue`][].
-MIN_SCALED_EIGENVALUE = 1e-10
 #: Largest position bound (RMSE, m) of an end-of-cycle pose, relative to the formation's
 #: size, for the pose to count as observable: a pose whose uncertainty is as large as the
 #: formation is not known. The paper's formation (size ~0.9 m) has bounds of 1-15 cm
@@ -107,25 +95,6 @@ def formation_size(T_place: Float[Array, "placements 7"]) -> Float[Array, ""]:
     """RMS distance (m) of the ground robots' placements from their centroid."""
     p = T_place[:, 4:]
     return jnp.sqrt(jnp.mean(jnp.sum((p - jnp.mean(p, axis=0, keepdims=True)) ** 2, axis=-1)))
-
-
-def min_scaled_eigenvalue(dtype) -> float:
-    """The floor of the Jacobi-scaled information's smallest eigenvalue in `dtype`:
-    `MIN_SCALED_EIGENVALUE`, or `eps` where that is larger (float32)."""
-    return max(MIN_SCALED_EIGENVALUE, float(jnp.finfo(dtype).eps))
-
-
-def nonsingular_information(
-    information: Float[Array, "n n"], inverse: Float[Array, "n n"], ok
-) -> Array:
-    """Whether a Fisher information matrix `(n, n)` with its inverse (and the inverse's
-    `ok` flag, e.g. from `spd_inverse`) is nonsingular beyond rounding: `1 / trace` of
-    its Jacobi-scaled inverse, a lower bound of its scaled smallest eigenvalue (within a
-    factor `n`; `jaxloc._core.linalg.scaled_inverse_trace`), above
-    [`min_scaled_eigenvalue`][]. The one observability test of every estimate's
-    information (closed forms, refinements, the one-step update)."""
-    floor = min_scaled_eigenvalue(information.dtype)
-    return ok & (scaled_inverse_trace(information, inverse) * floor < 1.0)
 
 
 def observable(covariance: CycleCovariance, size) -> Array:
@@ -200,8 +169,6 @@ def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
     dtype = T_place.dtype
     chi2, H, g = normal_equations(P, O, data, rig, strategy)
     ml_covariance, ok_information = spd_inverse(H)
-    ok_information = nonsingular_information(H, ml_covariance, ok_information)
-    ml_covariance = jnp.where(ok_information, ml_covariance, 0.0)
     unknowns = g.shape[0]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
     # The step to the minimum of the model linearized here, and the misfit left there.

@@ -16,7 +16,7 @@ from jaxtyping import Array, Float, PRNGKeyArray
 
 from .._core.linalg import adjugate3
 from .._model.covariance import crlb_inputs
-from .._model.gates import formation_size, MIN_SCALED_EIGENVALUE, observable
+from .._model.gates import formation_size, observable
 from .._model.measurements import normal_equations
 from .._refine.cycle import refine_cycle
 from .._sim.defects import corrupt_observations, drop_sightings
@@ -102,12 +102,17 @@ def corrupted_trial(
     }
 
 
+#: Smallest eigenvalue of a Jacobi-scaled (unit-diagonal) Fisher information for
+#: [`nonsingular`][]: an exactly singular direction (a rotation no measurement touches)
+#: sits at rounding level, 1e-16-1e-13 in float64.
+MIN_SCALED_EIGENVALUE = 1e-10
+
+
 def nonsingular(information: Float[Array, "n n"]) -> Array:
     """Whether a Fisher information matrix is nonsingular beyond rounding: its
-    Jacobi-scaled smallest eigenvalue above `jaxloc._model.gates.MIN_SCALED_EIGENVALUE`
-    (an exactly singular direction, a rotation no measurement touches, sits at rounding
-    level), by an eigendecomposition: the study's classification of cycles. The gates
-    apply the same floor LAPACK-free (`jaxloc._model.gates.nonsingular_information`)."""
+    Jacobi-scaled smallest eigenvalue above `MIN_SCALED_EIGENVALUE`. (The gates' Cholesky
+    test can pass an exactly singular matrix whose pivots round to a tiny positive
+    number; a study classifying cycles by observability uses this stricter test.)"""
     dg = jnp.diag(information)
     d = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
     scaled = information * d[:, None] * d[None, :]

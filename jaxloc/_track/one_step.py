@@ -53,12 +53,7 @@ from .._cycle.layout import placement_ids
 from .._cycle.observations import CycleObservations
 from .._cycle.rig import Rig
 from .._cycle.sightings import camera_pose_jacobian, in_body, matmul, matvec, skew
-from .._model.gates import (
-    chi2_limit,
-    MAX_RELATIVE_POSITION_BOUND,
-    MAX_ROTATION_BOUND,
-    nonsingular_information,
-)
+from .._model.gates import chi2_limit, MAX_RELATIVE_POSITION_BOUND, MAX_ROTATION_BOUND
 from .._model.measurements import CycleData, pixel_weights, rotations, whitened_with_jacobian
 from .._solvers.mutual import mutual_localization
 from .._solvers.p3p import p3p
@@ -448,7 +443,6 @@ def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Root
     )  # fmt: skip
     _, H, g = out.normal  # before the final Gauss--Newton step
     cov, cov_ok = unrolled_spd_inverse(H)
-    cov_ok = nonsingular_information(H, cov, cov_ok)
     step = jnp.where(cov_ok & start_ok, -cov @ g, 0.0)
     return out, start_ok, cov, cov_ok, step
 
