@@ -337,7 +337,12 @@ def _wait_for(predicate, proc, timeout):
 
 def _interrupt(proc):
     proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    try:
+        out, err = proc.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        proc.kill()  # and close its pipes: a neighbouring test must not see them
+        out, err = proc.communicate()
+        pytest.fail(f"no exit within 60 s of SIGINT; stderr: {err[-2000:]}")
     assert proc.returncode == 130, (proc.returncode, out, err)
     assert "Traceback" not in err and "FATAL" not in err and "Abort" not in err, err
     lines = [line for line in err.splitlines() if line.strip()]
