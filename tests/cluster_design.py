@@ -12,9 +12,8 @@ can differ in the last bits (measured with every field free, seed 3: 7 of the re
 numbers, at most 1.8e-13 relative; with these two fields free, none). The grouping alone
 is the cause: the same two groups run one after the other in the driver gave the Ray
 result bit for bit (checked once, 31 s more with a warm compilation cache; not repeated
-here). Also checks
-that a task of `map_on_ray` whose worker dies is retried, and that a second design on the
-same workers reuses their compiled program and gives the same result.
+here). Also checks that a task of `map_on_ray` whose worker dies is retried, and that a
+second design on the same workers reuses their compiled program and gives the same result.
 Exits 0 when every check passes.
 """
 
@@ -40,10 +39,10 @@ from jaxloc._study.cluster import map_on_ray  # noqa: E402
 
 
 SEED = 3
-#: Two free fields (the others frozen at the paper's formation): the local design takes
-#: ~58 s with an empty compilation cache instead of ~95 s with every field free (idle
-#: machine, mostly compiling), and the comparison with the local run needs no better or
-#: feasible design.
+#: Two free fields (the others frozen at the paper's formation): the local design, mostly
+#: compiling, took 58 s instead of 95 s with every field free (idle machine, no compilation
+#: cache; the script prints it as `local design: ... s`, 49.6 s in a test run). The
+#: comparison with the local run needs no better or feasible design.
 FREE = ("base", "side")
 SIZES = dict(num_starts=4, num_draws=4, iterations=5, free=FREE)
 

@@ -53,7 +53,12 @@ from .._cycle.layout import placement_ids
 from .._cycle.observations import CycleObservations
 from .._cycle.rig import Rig
 from .._cycle.sightings import camera_pose_jacobian, in_body, matmul, matvec, skew
-from .._model.gates import chi2_limit, MAX_RELATIVE_POSITION_BOUND, MAX_ROTATION_BOUND
+from .._model.gates import (
+    chi2_limit,
+    formation_size,
+    MAX_RELATIVE_POSITION_BOUND,
+    MAX_ROTATION_BOUND,
+)
 from .._model.measurements import CycleData, pixel_weights, rotations, whitened_with_jacobian
 from .._solvers.mutual import mutual_localization
 from .._solvers.p3p import p3p
@@ -448,7 +453,7 @@ def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Root
 
 
 def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, cov, cov_ok,
-          step, u):  # fmt: skip
+          step, T_ref):  # fmt: skip
     """The estimate's [`FitCheck`][] and result: the solver's status, observability (its
     position bound against the formation's size) and the chi-square gate, then
     `ambiguous`."""
@@ -465,7 +470,7 @@ def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, c
     limit = chi2_limit(dof, count, prior_rows, rig.noise_model, dtype)
     pos_var = jnp.trace(R_b @ cov[:3, :3] @ R_b.T)
     rot_var = jnp.trace(cov[3:6, 3:6])
-    size = jnp.sqrt(jnp.mean(jnp.sum((u - jnp.mean(u, 0, keepdims=True)) ** 2, -1))) * d
+    size = formation_size(T_ref) * d
     observable = (cov_ok & (pos_var <= (MAX_RELATIVE_POSITION_BOUND * size) ** 2)
                   & (rot_var <= MAX_ROTATION_BOUND**2) & (dof > 0))  # fmt: skip
     converged = cov_ok & start_ok & out.converged
@@ -495,7 +500,8 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     roots = _choose_root(snapshot, u, up, mount, prior)
     out, start_ok, cov, cov_ok, step = _refine_root(snapshot, rig, prior, roots, u, R_robots,
                                                     up, mount)  # fmt: skip
-    checks, result = _gate(rig, prior, mutual, roots, out, start_ok, cov, cov_ok, step, u)
+    checks, result = _gate(rig, prior, mutual, roots, out, start_ok, cov, cov_ok, step,
+                           T_ref)  # fmt: skip
     R_b, p_b, d = out.x
     # Outputs as poses (one batched matrix -> quaternion conversion).
     quats = jax.vmap(lambda R: jaxlie.SO3.from_matrix(R).wxyz)(

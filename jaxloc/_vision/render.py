@@ -303,13 +303,12 @@ def render_markers(
     w, h = camera.image_size
     img = _background(rng, h, w, background_level)
     ring_mask = _mirror_frame(img, camera)
-    markers = None
+    poly = center = ok = None
     keep_out = []
     if n:
-        poly, center, ok = _silhouettes(camera, jnp.asarray(p), radius)
-        markers = np.asarray(poly), np.asarray(center), np.asarray(ok)
+        poly, center, ok = (np.asarray(a) for a in _silhouettes(camera, jnp.asarray(p), radius))
         # Keep distractors clear of every marker's outline (centre and rim points).
-        keep_out = [q for i in range(n) if markers[2][i] for q in markers[0][i][::8]]
+        keep_out = [q for i in range(n) if ok[i] for q in poly[i][::8]]
     distractor_info = _draw_distractors(img, rng, distractors, ring_mask, keep_out)
     objs = _object_silhouettes(camera, objects)
     occ_layers = _occluder_coverage(camera, occluders, (h, w), ring_mask)
@@ -318,8 +317,8 @@ def render_markers(
         patch = occ[y0 : y0 + cov.shape[0], x0 : x0 + cov.shape[1]]
         np.maximum(patch, cov, out=patch)
     names = [str(i) for i in range(n)] if names is None else names
-    truth = _paint_far_to_near(img, camera, p, markers, objs, colors, names, ring_mask, occ,
-                               bool(occ_layers))  # fmt: skip
+    truth = _paint_far_to_near(img, camera, p, (poly, center, ok), objs, colors, names,
+                               ring_mask, occ, bool(occ_layers))  # fmt: skip
     # Occluders last: in front of every marker and object.
     for bgr, y0, x0, cov in occ_layers:
         _paint(img, y0, x0, cov, bgr)
@@ -354,6 +353,7 @@ def _paint_far_to_near(img, camera, p, markers, objs, colors, names, ring_mask, 
     each marker's truth (see [`render_markers`][]), in the markers' order. The truth keeps
     each marker's own silhouette: overlapping markers are not a centroid test."""
     h, w = img.shape[:2]
+    poly, center, ok = markers
     depth = [(float(np.linalg.norm(p[i])), "marker", i) for i in range(len(p))]
     depth += [(float(np.linalg.norm(o["center"])), "object", j) for j, o in enumerate(objs)]
     truth: dict[int, dict[str, Any]] = {}
@@ -366,7 +366,6 @@ def _paint_far_to_near(img, camera, p, markers, objs, colors, names, ring_mask, 
         entry = {"name": names[i], "visible": False, "center_px": None, "centroid_px": None,
                  "area_px": 0.0, "bgr": list(colors[i])}  # fmt: skip
         truth[int(i)] = entry
-        poly, center, ok = markers
         if not ok[i]:
             continue
         entry["center_px"] = center[i].tolist()
