@@ -244,3 +244,33 @@ def test_nan_overhead_bearing_marked_visible_is_nonfinite():
         bad.mutual, bad.overhead, bad.odometry, bad.odometry_sigma, "sequential"
     )
     assert not bool(missing.overhead_visible[1, 1])
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_information_singular_to_rounding_is_not_observable(dtype):
+    """Issue 17 (missing sightings): the Cholesky of an information matrix that is
+    singular to rounding can succeed (its pivot a tiny positive number), and the gates
+    took it as observable. `nonsingular_information` rejects it, however its rows are
+    weighed, and keeps an observable information whose rows are weighed 1e6 apart (a
+    noiseless cycle's pixels at the 1e-6 px floor beside its odometry), which the
+    Jacobi-scaled `J^T J` alone puts at rounding level too."""
+    from jaxloc._core.linalg import spd_inverse
+    from jaxloc._model.gates import nonsingular_information
+    from jaxloc._study.robustness import nonsingular
+
+    eps = float(jnp.finfo(dtype).eps)
+    # Direction (1, -1, 0) touched only by rounding.
+    singular = jnp.asarray([[1e3, 1e3, 0.0], [1.0, 1.0 + 2 * eps, 0.0], [0.0, 0.0, 1e-2]],
+                           dtype)  # fmt: skip
+    assert not bool(nonsingular_information(singular))
+    # Observable: (1, -1, 0) seen by one row weighed 1e6 below the others.
+    weighed = jnp.asarray([[1e6, 1e6, 0.0], [1.0, -1.0, 0.0], [0.0, 0.0, 1e6]], dtype)
+    assert bool(nonsingular_information(weighed))
+    if dtype == jnp.float64:
+        H = weighed.T @ weighed
+        d = 1 / jnp.sqrt(jnp.diag(H))
+        assert float(jnp.linalg.eigvalsh(H * d[:, None] * d[None])[0]) < 1e-10  # Jacobi alone
+        _, ok = spd_inverse(singular.T @ singular)
+        assert bool(ok)  # the Cholesky alone passes the singular one
+        assert not bool(nonsingular(singular)) and bool(nonsingular(weighed))
+    assert not bool(nonsingular_information(jnp.zeros((4, 3), dtype)))

@@ -140,6 +140,31 @@ def spd_inverse(F: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Bool[Array
     return jnp.where(ok, inv, 0.0), ok
 
 
+def scaled_inverse_trace(
+    F: Float[Array, "n n"], inverse: Float[Array, "n n"]
+) -> Float[Array, ""]:
+    """The trace of the Jacobi-scaled (unit-diagonal) `F`'s inverse, from `F` and its
+    inverse (e.g. [`spd_inverse`][]'s): `sum_i F_ii (F^-1)_ii`. Its reciprocal bounds the
+    smallest eigenvalue `lambda` of the scaled `F` within a factor `n`: `lambda / n <=
+    1 / trace <= lambda`. A relative test of singularity that a Cholesky's pivots are not:
+    an exactly singular `F` can factor with a pivot rounded to a tiny positive number,
+    and then this trace is ~1/eps. `inf` where `inverse` is zero (not positive definite)
+    or not finite."""
+    t = jnp.sum(jnp.diag(F) * jnp.diag(inverse))
+    return jnp.where(jnp.isfinite(t) & (t > 0), t, jnp.inf)
+
+
+def row_equilibrated_gram(J: Float[Array, "m n"]) -> Float[Array, "n n"]:
+    """`sum_i J_i^T J_i / |J_i|^2` over the nonzero rows `J_i` of `J`: the Gram matrix of
+    `J` with every row scaled to unit norm. Its null space is `J^T J`'s, its spread of
+    scales is not: a direction no row touches stays singular to rounding, while rows
+    weighed many orders of magnitude apart (pixels at a tiny sigma beside odometry) no
+    longer push an observable direction down to rounding level."""
+    squares = jnp.sum(J * J, axis=1)
+    weight = jnp.where(squares > 0, 1.0 / jnp.where(squares > 0, squares, 1.0), 0.0)
+    return jnp.einsum("mi,m,mj->ij", J, weight, J)
+
+
 def unrolled_cholesky_solve(
     H: Float[Array, "n n"], g: Float[Array, " n"]
 ) -> tuple[Float[Array, " n"], Bool[Array, ""]]:

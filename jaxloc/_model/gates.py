@@ -17,7 +17,12 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   a wrong closed-form branch, an outlier, swapped images. With `dof <= 0` (too few
   measurements to test anything) it is `unobservable`.
 - **Observability**: the Fisher information `J^T J` at the estimate must be positive
-  definite and the bound it implies for every end-of-cycle pose sensible for the
+  definite beyond rounding (with every whitened row scaled to unit norm and the result
+  Jacobi-scaled to a unit diagonal, its smallest eigenvalue above
+  `MIN_SCALED_EIGENVALUE`, tested through the trace of the scaled inverse: a Cholesky
+  alone passes an exactly singular matrix whose pivot rounds to a tiny positive number,
+  e.g. a rotation no sighting present touches at a placement that is not an end-of-cycle
+  pose; see [`nonsingular_information`][]) and the bound it implies for every end-of-cycle pose sensible for the
   formation: position RMSE below `MAX_RELATIVE_POSITION_BOUND` times the formation's
   size (the RMS distance of the ground robots' placements from their centroid) and
   rotation RMSE below `MAX_ROTATION_BOUND`. Singular or absurd: `unobservable` (too
@@ -33,13 +38,27 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from .._core.least_squares import solve_spd
-from .._core.linalg import spd_inverse
+from .._core.linalg import (
+    row_equilibrated_gram,
+    scaled_inverse_trace,
+    spd_inverse,
+    unrolled_spd_inverse,
+)
 from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_placements
 from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
 from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
-from .measurements import CycleData, normal_equations, pack, unpack, whitened
+from .measurements import (
+    CycleData,
+    normal_equations,
+    normal_equations_of_blocks,
+    pack,
+    unknowns_jacobian,
+    unpack,
+    whitened,
+    whitened_blocks,
+)
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -54,6 +73,17 @@ _Z_999 = 3.0902  # standard normal quantile of CHI2_QUANTILE
 #: smaller than the noise (by the leverage of the sightings), so clean sightings are
 #: rejected at a rate below 0.1% each.
 SIGHTING_LIMIT = {"gaussian": 13.8155, "paper": 21.6551}
+#: Smallest eigenvalue of the Jacobi-scaled (unit-diagonal) Fisher information of an
+#: observable estimate, in float64 (the rule of `jaxloc._study.robustness.nonsingular`):
+#: an exactly singular direction sits at rounding level, 1e-16-1e-13. Clean cycles of the
+#: paper's scenario sit far above: smallest 2.6e-5 over 4096 refined sequential cycles
+#: (1% quantile 1.1e-4, median 1.9e-4). In float32 the floor is `eps` (1.2e-7; a
+#: floor with float64's margin over rounding would reject clean cycles there); see
+#: [`min_scaled_eigenvalue`][].
+MIN_SCALED_EIGENVALUE = 1e-10
+#: Largest information matrix [`nonsingular_information`][] inverts by an unrolled
+#: Cholesky (the one-step update's 7 x 7; a cycle's 30-42 unknowns use loops).
+_UNROLLED_INVERSE_SIZE = 8
 #: Largest position bound (RMSE, m) of an end-of-cycle pose, relative to the formation's
 #: size, for the pose to count as observable: a pose whose uncertainty is as large as the
 #: formation is not known. The paper's formation (size ~0.9 m) has bounds of 1-15 cm
@@ -95,6 +125,31 @@ def formation_size(T_place: Float[Array, "placements 7"]) -> Float[Array, ""]:
     """RMS distance (m) of the ground robots' placements from their centroid."""
     p = T_place[:, 4:]
     return jnp.sqrt(jnp.mean(jnp.sum((p - jnp.mean(p, axis=0, keepdims=True)) ** 2, axis=-1)))
+
+
+def min_scaled_eigenvalue(dtype) -> float:
+    """The floor of the Jacobi-scaled information's smallest eigenvalue in `dtype`:
+    `MIN_SCALED_EIGENVALUE`, or `eps` where that is larger (float32)."""
+    return max(MIN_SCALED_EIGENVALUE, float(jnp.finfo(dtype).eps))
+
+
+def nonsingular_information(J: Float[Array, "m n"]) -> Array:
+    """Whether the Fisher information `J^T J` of a whitened Jacobian `J` `(m, n)` is
+    nonsingular beyond rounding: the smallest eigenvalue of its row-equilibrated form
+    (`jaxloc._core.linalg.row_equilibrated_gram`: each measurement counted once, whatever
+    its sigma), Jacobi-scaled to a unit diagonal, above [`min_scaled_eigenvalue`][],
+    tested through `1 / trace` of the scaled inverse (a lower bound within a factor `n`;
+    `jaxloc._core.linalg.scaled_inverse_trace`). A Cholesky of `J^T J` alone passes an
+    exactly singular information whose pivot rounds to a tiny positive number; the
+    Jacobi-scaled `J^T J` without the row scaling puts an observable noiseless cycle
+    (pixels at the 1e-6 px floor, the scale from 1 % odometry) at 1e-14, beside the 1e-16
+    of a free rotation. The one observability test of every estimate's information
+    (closed forms, refinements, the one-step update); LAPACK-free."""
+    G = row_equilibrated_gram(J)
+    invert = unrolled_spd_inverse if G.shape[0] <= _UNROLLED_INVERSE_SIZE else spd_inverse
+    inverse, ok = invert(G)
+    floor = min_scaled_eigenvalue(J.dtype)
+    return ok & (scaled_inverse_trace(G, inverse) * floor < 1.0)
 
 
 def observable(covariance: CycleCovariance, size) -> Array:
@@ -167,8 +222,11 @@ def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
     evaluated at `(P, O)`: the estimate itself, or its polished optimum when `polished`
     (see [`gate_all`][]). Returns `(result, checks, covariance)`."""
     dtype = T_place.dtype
-    chi2, H, g = normal_equations(P, O, data, rig, strategy)
+    r, B = whitened_blocks(P, O, data, rig, strategy)
+    chi2, H, g = normal_equations_of_blocks(r, B, strategy)
     ml_covariance, ok_information = spd_inverse(H)
+    ok_information = ok_information & nonsingular_information(unknowns_jacobian(B, strategy))
+    ml_covariance = jnp.where(ok_information, ml_covariance, 0.0)
     unknowns = g.shape[0]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
     # The step to the minimum of the model linearized here, and the misfit left there.

@@ -393,10 +393,23 @@ def whitened_with_jacobian(T_place, T_over, data: CycleData, rig: Rig, strategy:
     block `p < placements` is placement `p`'s right perturbation, the last block the
     overhead camera's."""
     r, B = whitened_blocks(T_place, T_over, data, rig, strategy)
+    return r, dense_jacobian(B, strategy)
+
+
+def unknowns_jacobian(B: Float[Array, "m 2 6"], strategy: str) -> Float[Array, "m n"]:
+    """The whitened Jacobian `(m, 6 * placements)` of [`whitened_blocks`][]' blocks `B`
+    with respect to the tangent of [`unpack`][] (placements 1, 2, ... then the overhead
+    camera; placement 0, the gauge, left out): the `J` of [`normal_equations`][]'
+    `J^T J`."""
+    return dense_jacobian(B, strategy)[:, 1:].reshape(B.shape[0], -1)
+
+
+def dense_jacobian(B: Float[Array, "m 2 6"], strategy: str) -> Float[Array, "m p 6"]:
+    """The dense Jacobian `(m, placements + 1, 6)` of [`whitened_blocks`][]' blocks `B`
+    (see [`whitened_with_jacobian`][])."""
     poses = residual_poses(strategy)
-    at = (poses[:, :, None] == np.arange(T_place.shape[0] + 1)).astype(np.float64)
-    J = jnp.sum(jnp.asarray(at, B.dtype)[..., None] * B[:, :, None, :], axis=1)
-    return r, J
+    at = (poses[:, :, None] == np.arange(poses.max() + 1)).astype(np.float64)
+    return jnp.sum(jnp.asarray(at, B.dtype)[..., None] * B[:, :, None, :], axis=1)
 
 
 def _runs(rows: list[int]) -> list[tuple[int, int]]:
@@ -471,10 +484,19 @@ def normal_equations(
     rows (slices, no gathers), about a tenth of the products of `J^T J` with a dense `J`.
     """
     r, B = whitened_blocks(T_place, T_over, data, rig, strategy)
+    if loss is None:
+        return normal_equations_of_blocks(r, B, strategy)
+    cost, sqrt_w = robust_weights(r, data.mutual_pixels.shape[0], loss)
+    normal = normal_equations_of_blocks(r * sqrt_w, B * sqrt_w[:, None, None], strategy)
+    return normal._replace(cost=cost)
+
+
+def normal_equations_of_blocks(
+    r: Float[Array, " m"], B: Float[Array, "m 2 6"], strategy: str
+) -> NormalEquations:
+    """[`normal_equations`][] of whitened residuals `r` and their blocks `B` (as
+    [`whitened_blocks`][] returns them): `r^T r`, `J^T J` and `J^T r`."""
     cost = jnp.sum(r * r)
-    if loss is not None:
-        cost, sqrt_w = robust_weights(r, data.mutual_pixels.shape[0], loss)
-        r, B = r * sqrt_w, B * sqrt_w[:, None, None]
     plan = _normal_plan(strategy)
     dtype = r.dtype
     a, b = B[:, 0], B[:, 1]

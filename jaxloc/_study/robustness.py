@@ -14,10 +14,10 @@ import jax.random as jr
 import numpy as np
 from jaxtyping import Array, Float, PRNGKeyArray
 
-from .._core.linalg import adjugate3
+from .._core.linalg import adjugate3, row_equilibrated_gram
 from .._model.covariance import crlb_inputs
-from .._model.gates import formation_size, observable
-from .._model.measurements import normal_equations
+from .._model.gates import formation_size, MIN_SCALED_EIGENVALUE, observable
+from .._model.measurements import unknowns_jacobian, whitened_blocks
 from .._refine.cycle import refine_cycle
 from .._sim.defects import corrupt_observations, drop_sightings
 from .._sim.scenario import Scenario
@@ -102,20 +102,18 @@ def corrupted_trial(
     }
 
 
-#: Smallest eigenvalue of a Jacobi-scaled (unit-diagonal) Fisher information for
-#: [`nonsingular`][]: an exactly singular direction (a rotation no measurement touches)
-#: sits at rounding level, 1e-16-1e-13 in float64.
-MIN_SCALED_EIGENVALUE = 1e-10
-
-
-def nonsingular(information: Float[Array, "n n"]) -> Array:
-    """Whether a Fisher information matrix is nonsingular beyond rounding: its
-    Jacobi-scaled smallest eigenvalue above `MIN_SCALED_EIGENVALUE`. (The gates' Cholesky
-    test can pass an exactly singular matrix whose pivots round to a tiny positive
-    number; a study classifying cycles by observability uses this stricter test.)"""
-    dg = jnp.diag(information)
+def nonsingular(J: Float[Array, "m n"]) -> Array:
+    """Whether the Fisher information `J^T J` of a whitened Jacobian `J` `(m, n)` is
+    nonsingular beyond rounding, by an eigendecomposition: the study's classification of
+    cycles. The rule of the gates' LAPACK-free test
+    (`jaxloc._model.gates.nonsingular_information`): every row scaled to unit norm, the
+    Gram matrix Jacobi-scaled, its smallest eigenvalue above
+    `jaxloc._model.gates.MIN_SCALED_EIGENVALUE` (an exactly singular direction, a
+    rotation no measurement touches, sits at rounding level)."""
+    G = row_equilibrated_gram(J)
+    dg = jnp.diag(G)
     d = jnp.where(dg > 0, 1.0 / jnp.sqrt(jnp.where(dg > 0, dg, 1.0)), 0.0)
-    scaled = information * d[:, None] * d[None, :]
+    scaled = G * d[:, None] * d[None, :]
     return jnp.all(dg > 0) & (jnp.linalg.eigvalsh(scaled)[0] > MIN_SCALED_EIGENVALUE)
 
 
@@ -144,6 +142,7 @@ def missing_data_trial(scenario: Scenario, key: PRNGKeyArray, probability) -> di
     T_place, T_over, data = crlb_inputs(
         scenario.rig, truth.poses, scenario.odometry_sigma_rel, strategy, present
     )
+    _, blocks = whitened_blocks(T_place, T_over, data, scenario.rig, strategy)
     true_pos = final_positions(truth.poses)
     e = final_positions(refined.poses)[0] - true_pos[0]
     poses = [x.poses.T_world_body.wxyz_xyz for x in (closed, refined)]
@@ -152,7 +151,7 @@ def missing_data_trial(scenario: Scenario, key: PRNGKeyArray, probability) -> di
     return {
         "visible": visible,
         "observable": observable(bound, formation_size(T_place))
-        & nonsingular(normal_equations(T_place, T_over, data, scenario.rig, strategy)[1]),
+        & nonsingular(unknowns_jacobian(blocks, strategy)),
         "missing": jnp.sum(~obs.mutual_visible & off_diagonal[None])
         + jnp.sum(~obs.overhead_visible),
         "closed": closed.result._value,

@@ -58,6 +58,7 @@ from .._model.gates import (
     formation_size,
     MAX_RELATIVE_POSITION_BOUND,
     MAX_ROTATION_BOUND,
+    nonsingular_information,
 )
 from .._model.measurements import CycleData, pixel_weights, rotations, whitened_with_jacobian
 from .._solvers.mutual import mutual_localization
@@ -448,6 +449,7 @@ def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Root
     )  # fmt: skip
     _, H, g = out.normal  # before the final Gauss--Newton step
     cov, cov_ok = unrolled_spd_inverse(H)
+    cov_ok = cov_ok & nonsingular_information(_model(out.x, prior, pb, camera)[1])
     step = jnp.where(cov_ok & start_ok, -cov @ g, 0.0)
     return out, start_ok, cov, cov_ok, step
 
