@@ -22,12 +22,13 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   `MIN_SCALED_EIGENVALUE`, tested through the trace of the scaled inverse: a Cholesky
   alone passes an exactly singular matrix whose pivot rounds to a tiny positive number,
   e.g. a rotation no sighting present touches at a placement that is not an end-of-cycle
-  pose; see [`nonsingular_information`][]) and the bound it implies for every end-of-cycle pose sensible for the
-  formation: position RMSE below `MAX_RELATIVE_POSITION_BOUND` times the formation's
-  size (the RMS distance of the ground robots' placements from their centroid) and
-  rotation RMSE below `MAX_ROTATION_BOUND`. Singular or absurd: `unobservable` (too
-  few distinct placements seen by the overhead camera, a robot no camera sees, zero-length
-  moves, a near-collinear formation).
+  pose; see [`nonsingular_information`][]) and the bound it implies for every
+  end-of-cycle pose sensible for the formation: position RMSE below
+  `MAX_RELATIVE_POSITION_BOUND` times the formation's size (the RMS distance of the
+  ground robots' placements from their centroid) and rotation RMSE below
+  `MAX_ROTATION_BOUND`. Singular or absurd: `unobservable` (too few distinct placements
+  seen by the overhead camera, a robot no camera sees, zero-length moves, a
+  near-collinear formation).
 """
 
 import equinox as eqx
@@ -73,12 +74,14 @@ _Z_999 = 3.0902  # standard normal quantile of CHI2_QUANTILE
 #: smaller than the noise (by the leverage of the sightings), so clean sightings are
 #: rejected at a rate below 0.1% each.
 SIGHTING_LIMIT = {"gaussian": 13.8155, "paper": 21.6551}
-#: Smallest eigenvalue of the Jacobi-scaled (unit-diagonal) Fisher information of an
-#: observable estimate, in float64 (the rule of `jaxloc._study.robustness.nonsingular`):
-#: an exactly singular direction sits at rounding level, 1e-16-1e-13. Clean cycles of the
-#: paper's scenario sit far above: smallest 2.6e-5 over 4096 refined sequential cycles
-#: (1% quantile 1.1e-4, median 1.9e-4). In float32 the floor is `eps` (1.2e-7; a
-#: floor with float64's margin over rounding would reject clean cycles there); see
+#: Smallest eigenvalue of the row-equilibrated, Jacobi-scaled Fisher information of an
+#: observable estimate, in float64 ([`nonsingular_information`][]; the rule of
+#: `jaxloc._study.robustness.nonsingular`): an exactly singular direction sits at
+#: rounding level, 1e-16-1e-13. Clean cycles of the paper's scenario sit far above:
+#: smallest 4.0e-5 (sequential) and 1.6e-5 (concurrent) over 4096 refined cycles each
+#: (1% quantile 1.5e-4 / 1.6e-4, median 2.9e-4 / 2.7e-4); a noiseless cycle 3.4e-4
+#: (`benchmarks/observability_rows.py`). In float32 the floor is `eps` (1.2e-7; a floor
+#: with float64's margin over rounding would reject clean cycles there); see
 #: [`min_scaled_eigenvalue`][].
 MIN_SCALED_EIGENVALUE = 1e-10
 #: Largest information matrix [`nonsingular_information`][] inverts by an unrolled
