@@ -150,8 +150,13 @@ def nonsingular_information(J: Float[Array, "m n"]) -> Array:
     (closed forms, refinements, the one-step update); LAPACK-free."""
     G = row_equilibrated_gram(J)
     invert = unrolled_spd_inverse if G.shape[0] <= _UNROLLED_INVERSE_SIZE else spd_inverse
-    inverse, ok = invert(G)
-    floor = min_scaled_eigenvalue(J.dtype)
+    return _beyond_rounding(G, *invert(G))
+
+
+def _beyond_rounding(G, inverse, ok) -> Array:
+    """[`nonsingular_information`][]'s test of a row-equilibrated information `G` and its
+    inverse (with the inverse's `ok` flag)."""
+    floor = min_scaled_eigenvalue(G.dtype)
     return ok & (scaled_inverse_trace(G, inverse) * floor < 1.0)
 
 
@@ -227,8 +232,12 @@ def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
     dtype = T_place.dtype
     r, B = whitened_blocks(P, O, data, rig, strategy)
     chi2, H, g = normal_equations_of_blocks(r, B, strategy)
-    ml_covariance, ok_information = spd_inverse(H)
-    ok_information = ok_information & nonsingular_information(unknowns_jacobian(B, strategy))
+    # One batched inverse of the information and its row-equilibrated form: one traced
+    # Cholesky (see `nonsingular_information`).
+    G = row_equilibrated_gram(unknowns_jacobian(B, strategy))
+    inverses, oks = jax.vmap(spd_inverse)(jnp.stack([H, G]))
+    ml_covariance = inverses[0]
+    ok_information = oks[0] & _beyond_rounding(G, inverses[1], oks[1])
     ml_covariance = jnp.where(ok_information, ml_covariance, 0.0)
     unknowns = g.shape[0]
     dof = (2 * data.num_sightings + data.num_odometry - unknowns).astype(jnp.int32)
