@@ -1,7 +1,7 @@
 """Issue 21's targets, measured (tracking over many cycles, one-step localization).
 
     python benchmarks/track_targets.py [--only study,one_step,scaling] [--runs N]
-        [--cycles K] [--one-step-trials N] [--scaling-runs N] [--seed S]
+        [--cycles K] [--one-step-trials N] [--scaling-runs N] [--seed S] [--chunks DIR]
         [--out benchmarks/results/track_targets.json]
 
 Sections (paper scenario, sequential, 2 px paper noise, 1 % odometry; the tracking
@@ -60,7 +60,8 @@ def study_section(args) -> dict:
     track = TrackScenario()
     t0 = time.perf_counter()
     study = run_track_study(track, args.runs, args.cycles, seed=args.seed,
-                            chunk_size=min(args.runs, 256), progress=False)  # fmt: skip
+                            chunk_size=min(args.runs, 256), out_dir=args.chunks,
+                            progress=False)  # fmt: skip
     seconds = time.perf_counter() - t0
     summary = summarize_track(study)
     measured = targets(summary)
@@ -263,6 +264,8 @@ def main(argv=None) -> int:
     p.add_argument("--scale-sigma", type=float, default=0.02)
     p.add_argument("--scaling-runs", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--chunks", default=None, metavar="DIR",
+                   help="stream the study's chunks to DIR (resumable: run again to go on)")
     p.add_argument("--out", default="benchmarks/results/track_targets.json")
     args = p.parse_args(argv)
     _setup()
