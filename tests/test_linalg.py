@@ -105,3 +105,22 @@ def test_two_pair_rotation_is_kabsch():
         b /= np.linalg.norm(b, axis=1, keepdims=True)
         R = np.asarray(_two_pair_rotation(*jnp.asarray(a), *jnp.asarray(b)))
         np.testing.assert_allclose(R, _kabsch_reference(b.T @ a), atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_row_equilibrated_gram_counts_each_row_once(dtype):
+    """`row_equilibrated_gram(J)` is `J_n^T J_n`, `J_n` the rows of `J` scaled to unit
+    norm, whatever the rows' weights (zero rows left out): the information the gates test
+    for singularity."""
+    from jaxloc._core.linalg import row_equilibrated_gram
+
+    rng = np.random.default_rng(0)
+    J = rng.normal(size=(9, 4))
+    J[3] = 0.0  # a missing measurement
+    weights = 10.0 ** rng.uniform(-6, 6, size=9)
+    norms = np.linalg.norm(J, axis=1, keepdims=True)
+    unit = np.divide(J, norms, out=np.zeros_like(J), where=norms > 0)
+    got = row_equilibrated_gram(jnp.asarray(J * weights[:, None], dtype))
+    assert got.dtype == dtype
+    rtol = 1e-12 if dtype == jnp.float64 else 1e-5
+    np.testing.assert_allclose(np.asarray(got), unit.T @ unit, rtol=rtol, atol=rtol)
