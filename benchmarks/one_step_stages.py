@@ -67,7 +67,7 @@ def main() -> None:
     scenario = Scenario.paper()
     rig = scenario.rig
     mount = rig.mounts[0]
-    snap, prior = jax.jit(snapshot_and_prior, static_argnums=0)(scenario, jr.key(1))
+    snap, prior = jax.jit(lambda key: snapshot_and_prior(scenario, key))(jr.key(1))
 
     def whole(s, p):
         return one_step.localize_one_step(s, rig, p, throw=False)
