@@ -13,12 +13,15 @@ from jaxloc._core.results import RESULTS, status_code
 from jaxloc._track.frames import body_of_overhead, perimeter
 
 
-CYCLES = 3
+# Past the smoother's window (2) by two cycles: the second marginalization is the first
+# whose kept poses carry no gauge (a row layout out of step with the cycle's residuals
+# made every smoother cycle from the fourth on `unobservable`).
+CYCLES = 4
 
 
 @pytest.fixture(scope="module")
 def near_exact_trial():
-    """Runs of 3 cycles with 1e-3 px pixel noise and 1e-5 odometry noise (the estimators'
+    """Runs of `CYCLES` cycles with 1e-3 px pixel noise and 1e-5 odometry noise (the estimators'
     weights match the simulated noise, so the gates apply as usual)."""
     scenario = jaxloc.Scenario.paper(pixel_sigma=1e-3, odometry_sigma_rel=1e-5)
     track = jaxloc.TrackScenario(

@@ -52,7 +52,7 @@ from .._cycle.estimate import FitCheck
 from .._cycle.layout import num_moves, num_placements, num_steps, placement_ids
 from .._cycle.rig import Rig
 from .._model.gates import chi2_limit
-from .._model.measurements import CycleData, whitened_with_jacobian
+from .._model.measurements import CycleData, residual_poses, whitened_with_jacobian
 from .frames import adjoint, body_of_overhead
 
 
@@ -81,8 +81,8 @@ class WindowLayout:
         self.new = P - 3
         self.per_slot = self.new + 1
         self.num_poses = 4 + window * self.per_slot
-        steps, moves = num_steps(strategy), num_moves(strategy)
-        self.rows_per_cycle = steps * 9 * 2 + steps * 3 * 2 + moves
+        # The cycle's residual rows, as `whitened` orders them (one home for that order).
+        self.rows_per_cycle = residual_poses(strategy).shape[0]
         self.num_rows = window * (self.rows_per_cycle + 6) + 24
         cycle_map = np.zeros((window, P + 1), np.int64)
         end = np.zeros((window, 3), np.int64)
