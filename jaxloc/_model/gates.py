@@ -60,6 +60,7 @@ from .measurements import (
     whitened,
     whitened_blocks,
 )
+from .mirrors import CONVERGED_DECREMENT, mirror_start, MIRROR_STEPS
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -178,6 +179,51 @@ def _gauss_newton_step(T_place, T_over, data: CycleData, rig: Rig, strategy: str
     return unpack(step, T_place, T_over)
 
 
+def _polish_and_mirror(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish: bool):
+    """The point the gates look at, its whitened residuals and blocks, and its mirror
+    minimum, from one Gauss--Newton loop (one traced copy of the model): `POLISH_STEPS`
+    steps from `(T_place, T_over)` when `polish` (else none), one evaluation at that
+    point `(P, O)`, then `MIRROR_STEPS` from its [`mirror_start`][]. Returns `(P, O, r, B,
+    mirror chi-square, distance)`: `r, B` of [`whitened_blocks`][] at `(P, O)`, the
+    chi-square of the polished mirror (`inf` when no move qualifies or it is not a
+    minimum: a failed solve, or a last step that still predicted a decrease of
+    `CONVERGED_DECREMENT` or more) and how far (m) its mirrored placement is from `P`'s."""
+    at = POLISH_STEPS  # the iteration that evaluates the point and starts the mirror
+
+    def step(i, carry):
+        X, P, O, r_at, B_at, index, active, _, ok = carry
+        r, B = whitened_blocks(*X, data, rig, strategy)
+        _, H, g = normal_equations_of_blocks(r, B, strategy)
+        delta, solved = solve_spd(H, -g)
+        here = i == at
+        P, O, r_at, B_at = jax.tree.map(
+            lambda new, old: jnp.where(here, new, old), (*X, r, B), (P, O, r_at, B_at)
+        )
+        # The mirror's poses carry no derivatives (only its chi-square is used) and stay
+        # finite, so that no NaN reaches a derivative through the loop.
+        start, index2, active2 = jax.lax.stop_gradient(mirror_start(X[0], data, strategy))
+        index, active = jnp.where(here, index2, index), jnp.where(here, active2, active)
+        moved = unpack(delta, *X)
+        finite = jnp.all(jnp.isfinite(moved[0])) & jnp.all(jnp.isfinite(moved[1]))
+        moved = jax.tree.map(lambda a, b: jnp.where(finite, a, b), moved, X)
+        X = (jnp.where(here, start, moved[0]), jnp.where(here, X[1], moved[1]))
+        ok = jnp.where(here, True, ok & solved)
+        return X, P, O, r_at, B_at, index, active, -g @ delta, ok
+
+    r0, B0 = jax.eval_shape(lambda: whitened_blocks(T_place, T_over, data, rig, strategy))
+    zeros = jnp.zeros(r0.shape, r0.dtype), jnp.zeros(B0.shape, B0.dtype)
+    carry = ((T_place, T_over), T_place, T_over, *zeros, jnp.array(0), jnp.array(False),
+             jnp.array(jnp.inf, T_place.dtype), jnp.array(True))  # fmt: skip
+    first = 0 if polish else at
+    X, P, O, r, B, index, active, decrement, ok = jax.lax.fori_loop(
+        first, at + 1 + MIRROR_STEPS, step, carry
+    )
+    chi2 = jnp.sum(whitened(*X, data, rig, strategy) ** 2)
+    minimum = active & ok & (decrement < CONVERGED_DECREMENT) & jnp.isfinite(chi2)
+    distance = jnp.linalg.norm(X[0][index, 4:] - P[index, 4:])
+    return P, O, r, B, jnp.where(minimum, chi2, jnp.inf), distance
+
+
 def polish_to_optimum(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
     """`POLISH_STEPS` Gauss--Newton steps from `(T_place, T_over)`: the nearby
     maximum-likelihood optimum, to well within its uncertainty."""
@@ -224,13 +270,13 @@ def _pose_differences(T_a, T_b) -> tuple[Float[Array, "4 3"], Float[Array, "4 3"
     return a.translation() - b.translation(), rotation
 
 
-def _gates_at(P, O, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
+def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: str,
               solver_result: RESULTS, polished: bool, final_poses):  # fmt: skip
     """The gates of an estimate `(T_place, T_over)` with end-of-cycle poses `final_poses`,
-    evaluated at `(P, O)`: the estimate itself, or its polished optimum when `polished`
-    (see [`gate_all`][]). Returns `(result, checks, covariance)`."""
+    evaluated at `(P, O)` (whitened residuals `r` and blocks `B` there): the estimate
+    itself, or its polished optimum when `polished` (see [`gate_all`][]). Returns
+    `(result, checks, covariance)`."""
     dtype = T_place.dtype
-    r, B = whitened_blocks(P, O, data, rig, strategy)
     chi2, H, g = normal_equations_of_blocks(r, B, strategy)
     # One batched inverse of the information and its row-equilibrated form: one traced
     # Cholesky (see `nonsingular_information`).
@@ -318,27 +364,33 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
     refinement). `rivals`: per point, `None` or other starts `(T_place (k, placements,
     7), T_over (k, 7), active (k,))` (a closed form's other local minima, see
     [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
-    estimate `ambiguous`."""
+    estimate `ambiguous`. So does, for every point, the mirror minimum of a moved
+    placement the overhead camera does not see ([`jaxloc._model.mirrors`][]) when it is
+    more than `DISTINCT_MINIMUM` from the point's own placement (the polish, the gates'
+    Jacobian and the mirror come from one Gauss--Newton loop: one traced copy of the
+    model)."""
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
 
     def one(p: GatePoint):
-        if polish:
-            P, O = polish_to_optimum(p.T_place, p.T_over, p.data, rig, strategy)
-        else:
-            P, O = p.T_place, p.T_over
+        P, O, r, B, mirror_chi2, distance = _polish_and_mirror(
+            p.T_place, p.T_over, p.data, rig, strategy, polish
+        )
         gate = _gates_at(
-            P, O, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
+            P, O, r, B, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
             p.final_poses,
         )  # fmt: skip
-        return gate, O
+        return gate, O, jnp.where(distance > DISTINCT_MINIMUM, mirror_chi2, jnp.inf)
 
-    out, O_all = jax.vmap(one)(stacked)
+    out, O_all, mirror_all = jax.vmap(one)(stacked)
     gates = []
     for i, (point, rival) in enumerate(zip(points, rivals or [None] * len(points))):
         result, checks, covariance = jax.tree.map(lambda x, i=i: x[i], out)
+        runner_up = mirror_all[i]
         if rival is not None:
-            runner_up = _runner_up_chi2(rival, O_all[i], point.data, rig, strategy)
-            result = mark_ambiguous(result, checks.chi2, runner_up)
+            runner_up = jnp.minimum(
+                runner_up, _runner_up_chi2(rival, O_all[i], point.data, rig, strategy)
+            )
+        result = mark_ambiguous(result, checks.chi2, runner_up)
         gates.append((result, checks, covariance))
     return gates
 
