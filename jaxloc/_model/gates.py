@@ -52,7 +52,6 @@ from .._cycle.rig import Rig
 from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
 from .measurements import (
     CycleData,
-    normal_equations,
     normal_equations_of_blocks,
     pack,
     unknowns_jacobian,
@@ -171,14 +170,6 @@ def observable(covariance: CycleCovariance, size) -> Array:
     )
 
 
-def _gauss_newton_step(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
-    """One undamped Gauss--Newton step on the whitened residuals (no step where the
-    information is singular or the step not finite)."""
-    _, H, g = normal_equations(T_place, T_over, data, rig, strategy)
-    step, _ = solve_spd(H, -g)
-    return unpack(step, T_place, T_over)
-
-
 def _polish_and_mirror(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish: bool):
     """The point the gates look at, its whitened residuals and blocks, and its mirror
     minimum, from one Gauss--Newton loop (one traced copy of the model): `POLISH_STEPS`
@@ -224,37 +215,11 @@ def _polish_and_mirror(T_place, T_over, data: CycleData, rig: Rig, strategy: str
     return P, O, r, B, jnp.where(minimum, chi2, jnp.inf), distance
 
 
-def polish_to_optimum(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
-    """`POLISH_STEPS` Gauss--Newton steps from `(T_place, T_over)`: the nearby
-    maximum-likelihood optimum, to well within its uncertainty."""
-    return jax.lax.fori_loop(
-        0,
-        POLISH_STEPS,
-        lambda _, x: _gauss_newton_step(*x, data, rig, strategy),
-        (T_place, T_over),
-    )
-
-
 def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
     """`ambiguous` where a `successful` estimate has a distinct rival minimum whose
     chi-square `runner_up_chi2` is within `AMBIGUITY_MARGIN` of its own."""
     close = runner_up_chi2 - chi2 < AMBIGUITY_MARGIN
     return RESULTS.where((result == RESULTS.successful) & close, RESULTS.ambiguous, result)
-
-
-def _runner_up_chi2(rivals, T_over, data: CycleData, rig: Rig, strategy: str):
-    """The lowest chi-square of the rival starts `(T_place (k, placements, 7), T_over
-    (k, 7), active (k,))` polished to their optima, among those distinct from the
-    solution whose overhead camera is at `T_over` (`inf` if none)."""
-    rival_place, rival_over, active = rivals
-
-    def one(P, O):
-        P, O = polish_to_optimum(P, O, data, rig, strategy)
-        return jnp.sum(whitened(P, O, data, rig, strategy) ** 2), O
-
-    chi2, O = jax.vmap(one)(rival_place, rival_over)
-    distinct = jnp.sum((O[:, 4:] - T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
-    return jnp.min(jnp.where(active & distinct & jnp.isfinite(chi2), chi2, jnp.inf))
 
 
 def end_poses(T_place, T_over, strategy: str) -> Float[Array, "4 7"]:
@@ -325,6 +290,26 @@ class GatePoint(eqx.Module):
     solver_result: RESULTS
 
 
+def _runner_up_chi2(chi2, T_over, active, own_T_over):
+    """The lowest chi-square `chi2 (k,)` of polished rival starts (overhead cameras
+    `T_over (k, 7)`, `active (k,)`) among those distinct from the solution whose overhead
+    camera is at `own_T_over` (`inf` if none)."""
+    distinct = jnp.sum((T_over[:, 4:] - own_T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
+    return jnp.min(jnp.where(active & distinct & jnp.isfinite(chi2), chi2, jnp.inf))
+
+
+def _rival_points(point: GatePoint, rivals) -> GatePoint:
+    """A point's rival starts `(T_place (k, placements, 7), T_over (k, 7), active (k,))`
+    as `k` stacked [`GatePoint`][]s on the point's measurements."""
+    rival_place, rival_over, _ = rivals
+    k = rival_place.shape[0]
+    shared = jax.tree.map(
+        lambda x: jnp.broadcast_to(x, (k,) + jnp.shape(x)),
+        (point.final_poses, point.data, point.solver_result),
+    )
+    return GatePoint(rival_place, rival_over, *shared)
+
+
 def gate_point(estimate: CycleEstimate, data: CycleData, strategy: str) -> GatePoint:
     """The [`GatePoint`][] of an (ungated) estimate: its placements where each first
     occurs and its end-of-cycle poses (identity where not finite: a failed solver's
@@ -366,30 +351,42 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
     [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
     estimate `ambiguous`. So does, for every point, the mirror minimum of a moved
     placement the overhead camera does not see ([`jaxloc._model.mirrors`][]) when it is
-    more than `DISTINCT_MINIMUM` from the point's own placement (the polish, the gates'
-    Jacobian and the mirror come from one Gauss--Newton loop: one traced copy of the
-    model)."""
+    more than `DISTINCT_MINIMUM` from the point's own placement. The polish, the gates'
+    Jacobian, the mirror and the rivals' polish come from one Gauss--Newton loop, mapped
+    over the points and the rivals together: one traced copy of the model."""
+    rivals = rivals or [None] * len(points)
+    if not polish and any(r is not None for r in rivals):
+        raise ValueError("gate_all: rivals are compared at their polished optima; pass polish=True")
+    n = len(points)
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
+    rival_points = [_rival_points(p, r) for p, r in zip(points, rivals) if r is not None]
+    lanes = jax.tree.map(lambda *x: jnp.concatenate(x), stacked, *rival_points)
 
-    def one(p: GatePoint):
-        P, O, r, B, mirror_chi2, distance = _polish_and_mirror(
-            p.T_place, p.T_over, p.data, rig, strategy, polish
-        )
-        gate = _gates_at(
+    def polished(p: GatePoint):
+        return _polish_and_mirror(p.T_place, p.T_over, p.data, rig, strategy, polish)
+
+    P, O, r, B, mirror_chi2, distance = jax.vmap(polished)(lanes)
+
+    def one(p: GatePoint, P, O, r, B):
+        return _gates_at(
             P, O, r, B, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
             p.final_poses,
         )  # fmt: skip
-        return gate, O, jnp.where(distance > DISTINCT_MINIMUM, mirror_chi2, jnp.inf)
 
-    out, O_all, mirror_all = jax.vmap(one)(stacked)
-    gates = []
-    for i, (point, rival) in enumerate(zip(points, rivals or [None] * len(points))):
+    out = jax.vmap(one)(stacked, P[:n], O[:n], r[:n], B[:n])
+    mirror = jnp.where(distance[:n] > DISTINCT_MINIMUM, mirror_chi2[:n], jnp.inf)
+    rival_chi2 = jnp.sum(r[n:] ** 2, axis=-1)
+    gates, lane = [], n
+    for i, rival in enumerate(rivals):
         result, checks, covariance = jax.tree.map(lambda x, i=i: x[i], out)
-        runner_up = mirror_all[i]
+        runner_up = mirror[i]
         if rival is not None:
+            k = rival[0].shape[0]
+            chi2 = rival_chi2[lane - n : lane - n + k]
             runner_up = jnp.minimum(
-                runner_up, _runner_up_chi2(rival, O_all[i], point.data, rig, strategy)
+                runner_up, _runner_up_chi2(chi2, O[lane : lane + k], rival[2], O[i])
             )
+            lane += k
         result = mark_ambiguous(result, checks.chi2, runner_up)
         gates.append((result, checks, covariance))
     return gates
