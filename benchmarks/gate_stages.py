@@ -14,9 +14,8 @@ program and the run time per problem (best of 3 calls); writes JSON with `--out`
 """
 
 import argparse
-import re
+import os
 import sys
-import time
 
 import jax
 
@@ -38,20 +37,17 @@ from jaxloc._model.measurements import (  # noqa: E402
 from jaxloc._solvers.localize import closed_forms  # noqa: E402
 
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from programs import _fusions, _timed  # noqa: E402
+from run import machine_info  # noqa: E402
+
+
 def timed_stage(name, f, args, batch, rows):
     """Compile `jit(vmap(f))`, run it on `args` (batched) and record one row."""
     program = jax.jit(jax.vmap(f)).lower(*args).compile()
     out = jax.block_until_ready(program(*args))
-    best = float("inf")
-    for _ in range(3):
-        start = time.perf_counter()
-        jax.block_until_ready(program(*args))
-        best = min(best, time.perf_counter() - start)
-    row = {
-        "stage": name,
-        "fusions": len(re.findall(r" fusion\(", program.as_text())),
-        "per_problem_us": 1e6 * best / batch,
-    }
+    best = min(_timed(program, args) for _ in range(3))
+    row = {"stage": name, "fusions": _fusions(program), "per_problem_us": 1e6 * best / batch}
     print(f"{name:34s} {row['fusions']:5d} fusions  {row['per_problem_us']:9.1f} us/problem")
     rows.append(row)
     return out
@@ -108,8 +104,8 @@ def main(argv=None) -> int:
         from jaxloc._core.files import atomic_write_json
 
         report = {"command": " ".join(["python", "benchmarks/gate_stages.py", *sys.argv[1:]]),
-                  "strategy": strategy, "batch": batch, "unknowns": int(H.shape[-1]),
-                  "rows": rows}  # fmt: skip
+                  "machine": machine_info(), "strategy": strategy, "batch": batch,
+                  "unknowns": int(H.shape[-1]), "rows": rows}  # fmt: skip
         atomic_write_json(args.out, report)
         print(f"wrote {args.out}")
     return 0
