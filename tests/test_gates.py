@@ -274,3 +274,32 @@ def test_information_singular_to_rounding_is_not_observable(dtype):
         assert bool(ok)  # the Cholesky alone passes the singular one
         assert not bool(nonsingular(singular)) and bool(nonsingular(weighed))
     assert not bool(nonsingular_information(jnp.zeros((4, 3), dtype)))
+
+
+def test_a_rival_minimum_makes_the_closed_form_ambiguous():
+    """The closed form's rival start (its other local minimum, polished in the gates' own
+    Gauss--Newton loop beside the point) is what makes these clean concurrent cycles
+    `ambiguous`: trials 178 and 364 of `split(key(0), 4096)` in the paper's scenario.
+    Gated without the rival, or with it marked inactive, the same estimates are
+    `successful`."""
+    from jaxloc._model.gates import gate_all, gate_point, gate_rivals
+    from jaxloc._model.measurements import cycle_data
+    from jaxloc._solvers.localize import closed_forms
+
+    scenario = jaxloc.Scenario.paper("concurrent")
+    rig = scenario.rig
+
+    def results(key):
+        _, obs, _ = jaxloc.simulate_cycle(scenario, key)
+        (estimate,) = closed_forms(obs, ("robust",))
+        point = gate_point(estimate, cycle_data(obs, rig), "concurrent")
+        rival = gate_rivals(estimate, point, "concurrent")
+        inactive = (rival[0], rival[1], jnp.zeros_like(rival[2]))
+        gates = gate_all([point] * 3, rig, "concurrent", polish=True,
+                         rivals=[rival, None, inactive])  # fmt: skip
+        return jnp.stack([g[0]._value for g in gates])
+
+    keys = jr.split(jr.key(0), 4096)[jnp.array([178, 364])]
+    codes = np.asarray(jax.jit(jax.vmap(results))(keys))
+    assert np.all(codes[:, 0] == RESULTS.ambiguous._value), codes
+    assert np.all(codes[:, 1:] == SUCCESSFUL), codes
