@@ -170,49 +170,67 @@ def observable(covariance: CycleCovariance, size) -> Array:
     )
 
 
-def _polish_and_mirror(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish: bool):
-    """The point the gates look at, its whitened residuals and blocks, and its mirror
-    minimum, from one Gauss--Newton loop (one traced copy of the model): `POLISH_STEPS`
-    steps from `(T_place, T_over)` when `polish` (else none), one evaluation at that
-    point `(P, O)`, then `MIRROR_STEPS` from its [`mirror_start`][]. Returns `(P, O, r, B,
-    mirror chi-square, distance)`: `r, B` of [`whitened_blocks`][] at `(P, O)`, the
-    chi-square of the polished mirror (`inf` when no move qualifies or it is not a
-    minimum: a failed solve, or a last step that still predicted a decrease of
-    `CONVERGED_DECREMENT` or more) and how far (m) its mirrored placement is from `P`'s."""
-    at = POLISH_STEPS  # the iteration that evaluates the point and starts the mirror
+def _gauss_newton_step(X, data: CycleData, rig: Rig, strategy: str):
+    """One undamped Gauss--Newton step from the placements `X = (T_place, T_over)`:
+    `(moved X, r, B, predicted decrease, solved)`, `r, B` of [`whitened_blocks`][] at `X`.
+    A step that is not finite is not taken."""
+    r, B = whitened_blocks(*X, data, rig, strategy)
+    _, H, g = normal_equations_of_blocks(r, B, strategy)
+    delta, solved = solve_spd(H, -g)
+    moved = unpack(delta, *X)
+    finite = jnp.all(jnp.isfinite(moved[0])) & jnp.all(jnp.isfinite(moved[1]))
+    moved = jax.tree.map(lambda a, b: jnp.where(finite, a, b), moved, X)
+    return moved, r, B, -g @ delta, solved
+
+
+def _polished(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish: bool):
+    """The point the gates look at and its whitened residuals and blocks: `POLISH_STEPS`
+    Gauss--Newton steps from `(T_place, T_over)` when `polish` (else none), then one
+    evaluation, in one `fori_loop` (one traced copy of the model, differentiable).
+    Returns `(P, O, r, B)`, `r, B` of [`whitened_blocks`][] at `(P, O)`."""
+    at = POLISH_STEPS if polish else 0  # the iteration that evaluates the point
 
     def step(i, carry):
-        X, P, O, r_at, B_at, index, active, _, ok = carry
-        r, B = whitened_blocks(*X, data, rig, strategy)
-        _, H, g = normal_equations_of_blocks(r, B, strategy)
-        delta, solved = solve_spd(H, -g)
+        X, r_at, B_at = carry
+        moved, r, B, _, _ = _gauss_newton_step(X, data, rig, strategy)
         here = i == at
-        P, O, r_at, B_at = jax.tree.map(
-            lambda new, old: jnp.where(here, new, old), (*X, r, B), (P, O, r_at, B_at)
-        )
-        # The mirror's poses carry no derivatives (only its chi-square is used) and stay
-        # finite, so that no NaN reaches a derivative through the loop.
-        start, index2, active2 = jax.lax.stop_gradient(mirror_start(X[0], data, strategy))
-        index, active = jnp.where(here, index2, index), jnp.where(here, active2, active)
-        moved = unpack(delta, *X)
-        finite = jnp.all(jnp.isfinite(moved[0])) & jnp.all(jnp.isfinite(moved[1]))
-        moved = jax.tree.map(lambda a, b: jnp.where(finite, a, b), moved, X)
-        X = (jnp.where(here, start, moved[0]), jnp.where(here, X[1], moved[1]))
-        ok = jnp.where(here, True, ok & solved)
-        return X, P, O, r_at, B_at, index, active, -g @ delta, ok
+        r_at, B_at = jnp.where(here, r, r_at), jnp.where(here, B, B_at)
+        return jax.tree.map(lambda a, b: jnp.where(here, b, a), moved, X), r_at, B_at
 
     r0, B0 = jax.eval_shape(lambda: whitened_blocks(T_place, T_over, data, rig, strategy))
     zeros = jnp.zeros(r0.shape, r0.dtype), jnp.zeros(B0.shape, B0.dtype)
-    carry = ((T_place, T_over), T_place, T_over, *zeros, jnp.array(0), jnp.array(False),
-             jnp.array(jnp.inf, T_place.dtype), jnp.array(True))  # fmt: skip
-    first = 0 if polish else at
-    X, P, O, r, B, index, active, decrement, ok = jax.lax.fori_loop(
-        first, at + 1 + MIRROR_STEPS, step, carry
+    (P, O), r, B = jax.lax.fori_loop(0, at + 1, step, ((T_place, T_over), *zeros))
+    return P, O, r, B
+
+
+def _mirror_minimum(P, O, data: CycleData, rig: Rig, strategy: str):
+    """The mirror minimum of the point `(P, O)`: `MIRROR_STEPS` Gauss--Newton steps from
+    its [`mirror_start`][]. Returns `(chi-square, distance)`: the polished mirror's
+    chi-square (`inf` when no move qualifies or it is not a minimum: a failed solve, or
+    a last step that still predicted a decrease of `CONVERGED_DECREMENT` or more) and how
+    far (m) its mirrored placement is from `P`'s.
+
+    A `while_loop` that runs only while the mirror is active: under `vmap` a batch in
+    which no point lacks an overhead sighting of a moved placement (almost every clean
+    batch) takes no step. The mirror carries no derivatives (its inputs are
+    stop-gradient'ed: only the status depends on it), so the loop need not be
+    reverse-differentiable."""
+    P, O, data, rig = jax.lax.stop_gradient((P, O, data, rig))
+    start, index, active = mirror_start(P, data, strategy)
+
+    def body(carry):
+        i, X, _, ok = carry
+        X, _, _, decrement, solved = _gauss_newton_step(X, data, rig, strategy)
+        return i + 1, X, decrement, ok & solved
+
+    carry = (jnp.array(0), (start, O), jnp.array(jnp.inf, P.dtype), jnp.array(True))
+    _, X, decrement, ok = jax.lax.while_loop(
+        lambda c: active & (c[0] < MIRROR_STEPS), body, carry
     )
     chi2 = jnp.sum(whitened(*X, data, rig, strategy) ** 2)
     minimum = active & ok & (decrement < CONVERGED_DECREMENT) & jnp.isfinite(chi2)
     distance = jnp.linalg.norm(X[0][index, 4:] - P[index, 4:])
-    return P, O, r, B, jnp.where(minimum, chi2, jnp.inf), distance
+    return jnp.where(minimum, chi2, jnp.inf), distance
 
 
 def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
@@ -352,8 +370,9 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
     estimate `ambiguous`. So does, for every point, the mirror minimum of a moved
     placement the overhead camera does not see ([`jaxloc._model.mirrors`][]) when it is
     more than `DISTINCT_MINIMUM` from the point's own placement. The polish, the gates'
-    Jacobian, the mirror and the rivals' polish come from one Gauss--Newton loop, mapped
-    over the points and the rivals together: one traced copy of the model."""
+    Jacobian and the rivals' polish come from one Gauss--Newton `fori_loop`, mapped over
+    the points and the rivals together; the mirror from a second, early-exit
+    `while_loop` over the points alone, which a batch with no mirror to look for skips."""
     rivals = rivals or [None] * len(points)
     if not polish and any(r is not None for r in rivals):
         raise ValueError("gate_all: rivals are compared at their polished optima; pass polish=True")
@@ -363,9 +382,12 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
     lanes = jax.tree.map(lambda *x: jnp.concatenate(x), stacked, *rival_points)
 
     def polished(p: GatePoint):
-        return _polish_and_mirror(p.T_place, p.T_over, p.data, rig, strategy, polish)
+        return _polished(p.T_place, p.T_over, p.data, rig, strategy, polish)
 
-    P, O, r, B, mirror_chi2, distance = jax.vmap(polished)(lanes)
+    P, O, r, B = jax.vmap(polished)(lanes)
+    mirror_chi2, distance = jax.vmap(
+        lambda P, O, data: _mirror_minimum(P, O, data, rig, strategy)
+    )(P[:n], O[:n], stacked.data)
 
     def one(p: GatePoint, P, O, r, B):
         return _gates_at(
@@ -374,7 +396,7 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
         )  # fmt: skip
 
     out = jax.vmap(one)(stacked, P[:n], O[:n], r[:n], B[:n])
-    mirror = jnp.where(distance[:n] > DISTINCT_MINIMUM, mirror_chi2[:n], jnp.inf)
+    mirror = jnp.where(distance > DISTINCT_MINIMUM, mirror_chi2, jnp.inf)
     rival_chi2 = jnp.sum(r[n:] ** 2, axis=-1)
     gates, lane = [], n
     for i, rival in enumerate(rivals):
