@@ -56,7 +56,6 @@ from .measurements import (
     pack,
     unknowns_jacobian,
     unpack,
-    whitened,
     whitened_blocks,
 )
 from .mirrors import CONVERGED_DECREMENT, mirror_start, MIRROR_STEPS
@@ -205,10 +204,10 @@ def _polished(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish:
 
 def _mirror_minimum(P, O, data: CycleData, rig: Rig, strategy: str):
     """The mirror minimum of the point `(P, O)`: `MIRROR_STEPS` Gauss--Newton steps from
-    its [`mirror_start`][]. Returns `(chi-square, distance)`: the polished mirror's
-    chi-square (`inf` when no move qualifies or it is not a minimum: a failed solve, or
-    a last step that still predicted a decrease of `CONVERGED_DECREMENT` or more) and how
-    far (m) its mirrored placement is from `P`'s.
+    its [`mirror_start`][], then one evaluation. Returns `(chi-square, distance)`: the
+    polished mirror's chi-square (`inf` when no move qualifies or it is not a minimum: a
+    failed solve, or a last step that still predicted a decrease of `CONVERGED_DECREMENT`
+    or more) and how far (m) its mirrored placement is from `P`'s.
 
     A `while_loop` that runs only while the mirror is active: under `vmap` a batch in
     which no point lacks an overhead sighting of a moved placement (almost every clean
@@ -219,15 +218,18 @@ def _mirror_minimum(P, O, data: CycleData, rig: Rig, strategy: str):
     start, index, active = mirror_start(P, data, strategy)
 
     def body(carry):
-        i, X, _, ok = carry
-        X, _, _, decrement, solved = _gauss_newton_step(X, data, rig, strategy)
-        return i + 1, X, decrement, ok & solved
+        i, X, _, decrement, ok = carry
+        moved, r, _, predicted, solved = _gauss_newton_step(X, data, rig, strategy)
+        last = i == MIRROR_STEPS  # evaluate there, do not move
+        X = jax.tree.map(lambda a, b: jnp.where(last, b, a), moved, X)
+        decrement = jnp.where(last, decrement, predicted)
+        return i + 1, X, jnp.sum(r**2), decrement, ok & (last | solved)
 
-    carry = (jnp.array(0), (start, O), jnp.array(jnp.inf, P.dtype), jnp.array(True))
-    _, X, decrement, ok = jax.lax.while_loop(
-        lambda c: active & (c[0] < MIRROR_STEPS), body, carry
+    inf = jnp.array(jnp.inf, P.dtype)
+    carry = (jnp.array(0), (start, O), inf, inf, jnp.array(True))
+    _, X, chi2, decrement, ok = jax.lax.while_loop(
+        lambda c: active & (c[0] <= MIRROR_STEPS), body, carry
     )
-    chi2 = jnp.sum(whitened(*X, data, rig, strategy) ** 2)
     minimum = active & ok & (decrement < CONVERGED_DECREMENT) & jnp.isfinite(chi2)
     distance = jnp.linalg.norm(X[0][index, 4:] - P[index, 4:])
     return jnp.where(minimum, chi2, jnp.inf), distance
