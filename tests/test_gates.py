@@ -303,3 +303,37 @@ def test_a_rival_minimum_makes_the_closed_form_ambiguous():
     codes = np.asarray(jax.jit(jax.vmap(results))(keys))
     assert np.all(codes[:, 0] == RESULTS.ambiguous._value), codes
     assert np.all(codes[:, 1:] == SUCCESSFUL), codes
+
+
+def test_a_gross_error_in_a_weakly_controlled_odometry_is_inconsistent():
+    """One odometry distance scaled by 0.77-1.33 in random sequential formations (cycles
+    5378, 12408, 18798 and 25148 of `benchmarks/corrupted_cycles.py`'s seed 0): the
+    others control it weakly (redundancy 0.1-0.35), so the refinement absorbs the error
+    into the scale and its total chi-square stays under the limit, with C 10-26 of its
+    own standard deviations off (position NEES 127-668). Only the test of each
+    measurement against the rest (`worst_sighting`, Baarda's data snooping) sees it;
+    these were `successful` before it."""
+    from jaxloc._sim.defects import corrupt_observations, DEFECTS
+    from jaxloc._study.robustness import final_positions, position_nees, random_formation
+
+    base = jaxloc.Scenario.paper("sequential")
+
+    def one(key):
+        k_geo, k_sim, k_defect = jr.split(key, 3)
+        scenario = random_formation(base, k_geo, 0.3, 0.5)
+        truth, obs, visible = jaxloc.simulate_cycle(scenario, k_sim)
+        obs = corrupt_observations(obs, scenario.rig, DEFECTS.index("scaled_odometry"),
+                                   key=k_defect)  # fmt: skip
+        closed = jaxloc.localize_cycle(obs, scenario.rig, throw=False)
+        refined = jaxloc.refine_cycle(obs, scenario.rig, closed, throw=False)
+        c = refined.checks
+        nees = jnp.max(position_nees(refined, final_positions(truth.poses)))
+        return visible, refined.result._value, c.chi2_min <= c.chi2_limit, c.worst_sighting, nees
+
+    keys = jax.vmap(lambda i: jr.fold_in(jr.key(0), i))(jnp.array([5378, 12408, 18798, 25148]))
+    visible, result, chi2_passes, worst, nees = map(np.asarray, jax.jit(jax.vmap(one))(keys))
+    assert visible.all()
+    assert np.all(nees > 100.0), nees  # wrong by 10 standard deviations or more
+    assert chi2_passes.all()  # the total chi-square does not notice
+    assert np.all(worst > 1.0), worst
+    assert np.all(result == RESULTS.inconsistent_fit._value), result

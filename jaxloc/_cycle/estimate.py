@@ -57,6 +57,10 @@ class FitCheck(eqx.Module):
       the estimate is `inconsistent_fit`.
     - `observable`: the information matrix at the estimate is positive definite and every
       final pose's bound is below the documented limits (else `unobservable`).
+    - `worst_sighting`: the largest normalized residual of any one measurement (a pixel
+      sighting or an odometry distance) relative to its limit
+      (`jaxloc._model.gates.worst_sighting`); above 1 the estimate is `inconsistent_fit`.
+      NaN where not computed (the one-step update, the smoother, a start).
     """
 
     solver_result: RESULTS
@@ -65,6 +69,7 @@ class FitCheck(eqx.Module):
     dof: Int[Array, ""]
     chi2_limit: Float[Array, ""]
     observable: Bool[Array, ""]
+    worst_sighting: Float[Array, ""]
 
 
 class CycleStarts(eqx.Module):
@@ -164,7 +169,7 @@ class CycleEstimate(eqx.Module):
         nan = jnp.full(T.shape[:-3], jnp.nan, dtype)
         checks = FitCheck(
             result, nan, nan, jnp.zeros(T.shape[:-3], jnp.int32), nan,
-            jnp.zeros(T.shape[:-3], bool),
+            jnp.zeros(T.shape[:-3], bool), nan,
         )  # fmt: skip
         zeros = jnp.zeros(T.shape[:-3] + (4, 3, 3), dtype)
         covariance = CycleCovariance(

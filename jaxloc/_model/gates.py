@@ -29,6 +29,15 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   `MAX_ROTATION_BOUND`. Singular or absurd: `unobservable` (too few distinct placements
   seen by the overhead camera, a robot no camera sees, zero-length moves, a
   near-collinear formation).
+- **One sighting against the rest** (Baarda's data snooping): each pixel sighting's and
+  each odometry distance's residual at the linearized optimum, normalized by its own
+  redundancy, `T = r_b^T (I - J_b C J_b^T)^-1 r_b` (`C = (J^T J)^-1`: the residual's own
+  covariance is `I - J_b C J_b^T`, not `I`), against its quantile at a family-wise
+  `1 - CHI2_QUANTILE` over the measurements present ([`sighting_limits`][]). A gross
+  error in a measurement that the others control only weakly (an odometry distance
+  scaled by 20 %, with redundancy 0.1: whitened residual ~2, normalized ~6) moves the
+  estimate by many of its standard deviations yet barely raises the total chi-square;
+  this gate sees it. A measurement no other controls (redundancy 0) cannot be tested.
 """
 
 import equinox as eqx
@@ -36,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from jax.scipy.special import ndtri
 from jaxtyping import Array, Float, Int
 
 from .._core.least_squares import solve_spd
@@ -121,6 +131,53 @@ def chi2_limit(
     c = jnp.maximum(c, 1.0)
     k = jnp.maximum(dof, 1).astype(dtype) / c
     return c * k * (1.0 - 2.0 / (9.0 * k) + _Z_999 * jnp.sqrt(2.0 / (9.0 * k))) ** 3
+
+
+#: Redundancy (the unexplained share `1 - h` of a measurement's variance) below which the
+#: sighting test treats a measurement as uncontrolled: its residual is then ~0 by
+#: construction and dividing by the redundancy would only amplify rounding.
+MIN_REDUNDANCY = 1e-3
+
+
+def sighting_limits(num_measurements, noise_model: str, dtype):
+    """`(pixel sighting, odometry distance)` limits of the normalized residual statistic
+    `T` (see the module docstring) at a family-wise false-alarm rate `1 - CHI2_QUANTILE`
+    over `num_measurements` (Bonferroni: each at `(1 - CHI2_QUANTILE) / n`). A pixel
+    sighting's `T` is chi-square(2) for "gaussian" noise, `2 chi-square(1)` for "paper"
+    noise (see [`SIGHTING_LIMIT`][]); a distance's is chi-square(1)."""
+    alpha = (1.0 - CHI2_QUANTILE) / jnp.maximum(jnp.asarray(num_measurements, dtype), 1.0)
+    z2 = ndtri(1.0 - 0.5 * alpha) ** 2
+    pixel = 2.0 * z2 if noise_model == "paper" else -2.0 * jnp.log(alpha)
+    return pixel, z2
+
+
+def worst_sighting(r, J, covariance, data: CycleData, noise_model: str) -> Float[Array, ""]:
+    """The largest normalized residual statistic `T` of any one measurement relative to
+    its limit (above 1: that measurement contradicts the others; see the module
+    docstring), from whitened residuals `r` `(m,)` at the linearized optimum, their
+    Jacobian `J` `(m, n)` and `covariance = (J^T J)^-1` `(n, n)`. Rows as
+    [`whitened_blocks`][] orders them: pixel sightings as row pairs, then one row per
+    odometry distance."""
+    moves = data.odometry.shape[-1]
+    JC = J @ covariance
+    pairs = (r.shape[0] - moves) // 2
+    Jp, JCp = J[: 2 * pairs].reshape(pairs, 2, -1), JC[: 2 * pairs].reshape(pairs, 2, -1)
+    h = jnp.einsum("sin,sjn->sij", JCp, Jp)  # the sightings' 2 x 2 leverage blocks
+    # (I - h + MIN_REDUNDANCY I)^-1 by its adjugate: a measurement the others do not
+    # control has a residual ~0 that rounding would otherwise blow up.
+    a, b, d = 1.0 - h[:, 0, 0] + MIN_REDUNDANCY, -h[:, 0, 1], 1.0 - h[:, 1, 1] + MIN_REDUNDANCY
+    det = a * d - b * b
+    ok = det > 0
+    rp = r[: 2 * pairs].reshape(pairs, 2)
+    quad = d * rp[:, 0] ** 2 - 2.0 * b * rp[:, 0] * rp[:, 1] + a * rp[:, 1] ** 2
+    t_pixel = jnp.where(ok, quad / jnp.where(ok, det, 1.0), 0.0)
+    ro, Jo, JCo = r[2 * pairs :], J[2 * pairs :], JC[2 * pairs :]
+    redundancy = jnp.maximum(1.0 - jnp.sum(JCo * Jo, axis=-1), 0.0) + MIN_REDUNDANCY
+    t_odometry = ro**2 / redundancy
+    pixel, distance = sighting_limits(data.num_sightings + data.num_odometry, noise_model, r.dtype)
+    return jnp.maximum(
+        jnp.max(t_pixel, initial=0.0) / pixel, jnp.max(t_odometry, initial=0.0) / distance
+    )
 
 
 def formation_size(T_place: Float[Array, "placements 7"]) -> Float[Array, ""]:
@@ -263,9 +320,10 @@ def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: 
     `(result, checks, covariance)`."""
     dtype = T_place.dtype
     chi2, H, g = normal_equations_of_blocks(r, B, strategy)
+    J = unknowns_jacobian(B, strategy)
     # One batched inverse of the information and its row-equilibrated form: one traced
     # Cholesky (see `nonsingular_information`).
-    G = row_equilibrated_gram(unknowns_jacobian(B, strategy))
+    G = row_equilibrated_gram(J)
     inverses, oks = jax.vmap(spd_inverse)(jnp.stack([H, G]))
     ml_covariance = inverses[0]
     ok_information = oks[0] & _beyond_rounding(G, inverses[1], oks[1])
@@ -289,10 +347,12 @@ def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: 
     is_observable = observable(ml, formation_size(P)) & (dof > 0)
     ok = solver_result == RESULTS.successful
     result = RESULTS.where(ok & ~is_observable, RESULTS.unobservable, solver_result)
+    worst = worst_sighting(r + J @ step, J, ml_covariance, data, rig.noise_model)
+    consistent = (chi2_min <= limit) & (worst <= 1.0)
     result = RESULTS.where(
-        (result == RESULTS.successful) & ~(chi2_min <= limit), RESULTS.inconsistent_fit, result
+        (result == RESULTS.successful) & ~consistent, RESULTS.inconsistent_fit, result
     )
-    checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable)
+    checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable, worst)
     return result, checks, covariance
 
 

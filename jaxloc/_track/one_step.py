@@ -491,7 +491,8 @@ def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, c
                            RESULTS.inconsistent_fit, result)  # fmt: skip
     result = RESULTS.where((result == RESULTS.successful) & roots.ambiguous, RESULTS.ambiguous,
                            result)  # fmt: skip
-    return FitCheck(solver, cost, chi2, dof, limit, observable), result
+    unchecked = jnp.full((), jnp.nan, dtype)
+    return FitCheck(solver, cost, chi2, dof, limit, observable, unchecked), result
 
 
 @eqx.filter_jit

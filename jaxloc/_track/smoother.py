@@ -510,7 +510,7 @@ def smoother_update(
     result = RESULTS.where(code == 0, RESULTS.successful, result)
     result = _result_of_code(code, result)
     poses, cov = newest_end(layout, state, s, covariance, rig)
-    checks = FitCheck(result, chi2, chi2, dof, limit, observable)
+    checks = FitCheck(result, chi2, chi2, dof, limit, observable, jnp.full_like(chi2, jnp.nan))
     return state, SmootherEstimate(poses, cov, result, checks, num_steps)
 
 
