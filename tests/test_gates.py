@@ -306,7 +306,7 @@ def test_a_rival_minimum_makes_the_closed_form_ambiguous():
 
 
 def test_a_gross_error_in_a_weakly_controlled_odometry_is_inconsistent():
-    """One odometry distance scaled by 0.77-1.33 in random sequential formations (cycles
+    """One odometry distance scaled by 0.72-1.14 in random sequential formations (cycles
     5378, 12408, 18798 and 25148 of `benchmarks/corrupted_cycles.py`'s seed 0): the
     others control it weakly (redundancy 0.1-0.35), so the refinement absorbs the error
     into the scale and its total chi-square stays under the limit, with C 10-26 of its
