@@ -151,29 +151,37 @@ def sighting_limits(num_measurements, noise_model: str, dtype):
     return pixel, z2
 
 
+def standardized_squares(r, J, covariance, pairs: int, floor):
+    """Baarda's standardized squared residuals of a least-squares fit: `(pixel (pairs,),
+    single (rows,))`. The first `2 pairs` rows of the whitened residuals `r` `(m,)` and
+    their Jacobian `J` `(m, n)` are pixel sightings (two rows each), the rest single rows
+    (odometry distances); `covariance = (J^T J)^-1` `(n, n)`. A sighting's statistic is
+    `r_b^T ((1 + floor) I - P_b)^-1 r_b`, `P_b = J_b C J_b^T` its leverage (the fit
+    absorbs `P_b` of its noise), a row's `r^2 / (max(1 - P, 0) + floor)`: `floor` keeps
+    a measurement the fit leans on entirely (its residual ~0 by construction) from
+    amplifying rounding. Where the 2 x 2 system is not positive, the plain squares."""
+    Jb = J[: 2 * pairs].reshape(pairs, 2, -1)
+    P = jnp.einsum("sai,ij,sbj->sab", Jb, covariance, Jb)
+    C = jnp.eye(2, dtype=r.dtype)[None] * (1.0 + floor) - P
+    rb = r[: 2 * pairs].reshape(pairs, 2)
+    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    quad = C[:, 1, 1] * rb[:, 0] ** 2 - 2.0 * C[:, 0, 1] * rb[:, 0] * rb[:, 1]
+    quad = quad + C[:, 0, 0] * rb[:, 1] ** 2
+    good = det > 0
+    pixel = jnp.where(good, quad / jnp.where(good, det, 1.0), jnp.sum(rb * rb, axis=-1))
+    rows, Jr = r[2 * pairs :], J[2 * pairs :]
+    leverage = jnp.einsum("mi,ij,mj->m", Jr, covariance, Jr)
+    return pixel, rows**2 / (jnp.maximum(1.0 - leverage, 0.0) + floor)
+
+
 def worst_sighting(r, J, covariance, data: CycleData, noise_model: str) -> Float[Array, ""]:
-    """The largest normalized residual statistic `T` of any one measurement relative to
-    its limit (above 1: that measurement contradicts the others; see the module
-    docstring), from whitened residuals `r` `(m,)` at the linearized optimum, their
-    Jacobian `J` `(m, n)` and `covariance = (J^T J)^-1` `(n, n)`. Rows as
-    [`whitened_blocks`][] orders them: pixel sightings as row pairs, then one row per
-    odometry distance."""
-    moves = data.odometry.shape[-1]
-    JC = J @ covariance
-    pairs = (r.shape[0] - moves) // 2
-    Jp, JCp = J[: 2 * pairs].reshape(pairs, 2, -1), JC[: 2 * pairs].reshape(pairs, 2, -1)
-    h = jnp.einsum("sin,sjn->sij", JCp, Jp)  # the sightings' 2 x 2 leverage blocks
-    # (I - h + MIN_REDUNDANCY I)^-1 by its adjugate: a measurement the others do not
-    # control has a residual ~0 that rounding would otherwise blow up.
-    a, b, d = 1.0 - h[:, 0, 0] + MIN_REDUNDANCY, -h[:, 0, 1], 1.0 - h[:, 1, 1] + MIN_REDUNDANCY
-    det = a * d - b * b
-    ok = det > 0
-    rp = r[: 2 * pairs].reshape(pairs, 2)
-    quad = d * rp[:, 0] ** 2 - 2.0 * b * rp[:, 0] * rp[:, 1] + a * rp[:, 1] ** 2
-    t_pixel = jnp.where(ok, quad / jnp.where(ok, det, 1.0), 0.0)
-    ro, Jo, JCo = r[2 * pairs :], J[2 * pairs :], JC[2 * pairs :]
-    redundancy = jnp.maximum(1.0 - jnp.sum(JCo * Jo, axis=-1), 0.0) + MIN_REDUNDANCY
-    t_odometry = ro**2 / redundancy
+    """The largest [`standardized_squares`][] statistic of any one measurement relative to
+    its limit ([`sighting_limits`][]; above 1: that measurement contradicts the others),
+    from whitened residuals `r` `(m,)` at the linearized optimum, their Jacobian `J`
+    `(m, n)` and `covariance = (J^T J)^-1` `(n, n)`, rows as [`whitened_blocks`][]
+    orders them (pixel sightings as row pairs, then the odometry distances)."""
+    pairs = (r.shape[0] - data.odometry.shape[-1]) // 2
+    t_pixel, t_odometry = standardized_squares(r, J, covariance, pairs, MIN_REDUNDANCY)
     pixel, distance = sighting_limits(data.num_sightings + data.num_odometry, noise_model, r.dtype)
     return jnp.maximum(
         jnp.max(t_pixel, initial=0.0) / pixel, jnp.max(t_odometry, initial=0.0) / distance

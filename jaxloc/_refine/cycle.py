@@ -44,6 +44,7 @@ from .._model.gates import (
     gated,
     mark_ambiguous,
     SIGHTING_LIMIT,
+    standardized_squares,
 )
 from .._model.measurements import (
     cycle_data,
@@ -250,15 +251,9 @@ def sighting_statistics(T_place, T_over, data: CycleData, rig: Rig, strategy: st
     J = J[:, 1:].reshape(r.shape[0], -1)
     H_inv, ok = spd_inverse(gram(J))
     n_s = 9 * steps
-    Jb = J[: 2 * n_s].reshape(n_s, 2, -1)
-    P = jnp.einsum("sai,ij,sbj->sab", Jb, H_inv, Jb)
-    C = jnp.eye(2, dtype=r.dtype)[None] * (1.0 + LEVERAGE_FLOOR) - P
+    t, _ = standardized_squares(r, J, H_inv, n_s, LEVERAGE_FLOOR)
     rb = r[: 2 * n_s].reshape(n_s, 2)
-    det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-    quad = C[:, 1, 1] * rb[:, 0] ** 2 - 2.0 * C[:, 0, 1] * rb[:, 0] * rb[:, 1]
-    quad = quad + C[:, 0, 0] * rb[:, 1] ** 2
-    good = ok & (det > 0)
-    t = jnp.where(good, quad / jnp.where(good, det, 1.0), jnp.sum(rb * rb, axis=-1))
+    t = jnp.where(ok, t, jnp.sum(rb * rb, axis=-1))
     return t[: 6 * steps].reshape(steps, 6), t[6 * steps :].reshape(steps, 3)
 
 
