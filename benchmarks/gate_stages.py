@@ -9,8 +9,8 @@ the whole gating of it (`gate_all` with its rivals, as `localize_cycle` calls it
 the pieces one Gauss--Newton iteration of the gates is made of (whitened residuals and
 their blocks, the normal equations from the blocks, the `fori_loop` Cholesky and the
 solve, the Jacobi-scaled inverse, the row-equilibrated Gram matrix), then the gates' two
-loops alone: polish and evaluation, and the mirror (which takes no step in a batch where
-no estimate lacks an overhead sighting of a moved robot). Prints, per stage, the fused
+loops alone: polish and evaluation, and the second minima (which take no step in a batch
+where no estimate lacks a sighting). Prints, per stage, the fused
 kernels of its compiled program and the run time per problem (best of 3 calls); writes
 JSON with `--out`.
 """
@@ -30,8 +30,8 @@ import jaxloc  # noqa: E402
 from jaxloc._core.least_squares import solve_spd  # noqa: E402
 from jaxloc._core.linalg import cholesky, row_equilibrated_gram, spd_inverse  # noqa: E402
 from jaxloc._model.gates import (  # noqa: E402
-    _mirror_minimum,
     _polished,
+    _second_minimum,
     gate_all,
     gate_point,
     gate_rivals,
@@ -108,8 +108,8 @@ def main(argv=None) -> int:
         (points,), batch, rows,
     )  # fmt: skip
     timed_stage(
-        "mirror loop",
-        lambda P, O, p: _mirror_minimum(P, O, p.data, rig, strategy),
+        "second-minimum loop",
+        lambda P, O, p: _second_minimum(P, O, p.data, rig, strategy),
         (P, O, points), batch, rows,
     )  # fmt: skip
     print(f"unknowns {H.shape[-1]}, whitened rows {r.shape[-1]}")

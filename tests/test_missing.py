@@ -132,8 +132,15 @@ def _random_missing(strategy, keys, probability):
 def test_random_missing_sightings_never_a_wrong_pose(strategy):
     """5% of the sightings missing at random: whatever is marked successful is right
     (NEES below `WRONG_POSE_NEES`, as `tests/test_fuzz.py`), nothing is NaN, and most
-    cycles are still localized."""
-    out = jax.device_get(_random_missing(strategy, jr.split(jr.key(20), 128), 0.05))
+    cycles are still localized. The last cycle is cycle 1129 of
+    `benchmarks/missing_data.py` (seed 0), whose closed form lands in the overhead
+    camera's planar flip (C 3.7 m off; it was `successful`): the gates find the true
+    minimum, which fits better, and call it `ambiguous` (the refinement from it stops
+    unconverged)."""
+    keys = jnp.concatenate([jr.split(jr.key(20), 128), jr.fold_in(jr.key(0), 1129)[None]])
+    out = jax.device_get(_random_missing(strategy, keys, 0.05))
+    if strategy == "sequential":
+        assert out["closed"][-1] == RESULTS.ambiguous._value, out["closed"][-1]
     assert np.all(out["finite"])
     vis = out["visible"]
     for stage in ("closed", "refined"):
@@ -332,3 +339,44 @@ def test_mirror_start_geometry():
     np.testing.assert_allclose(jnp.cross(p2 - p, u), 0.0, atol=1e-12)
     np.testing.assert_array_equal(np.delete(np.asarray(mirrored), 5, 0),
                                   np.delete(np.asarray(T_place), 5, 0))  # fmt: skip
+
+
+def test_planar_flip_geometry():
+    """The overhead camera's planar flip keeps its distance from the placements'
+    centroid, mirrors its line of sight about their floor normal, and flipped again is
+    the camera itself; a camera looking along the normal has no flip. The gates look for
+    it only when a sighting is missing."""
+    from jaxloc._core.numerics import safe_normalize
+    from jaxloc._model.covariance import estimate_placements
+    from jaxloc._model.measurements import cycle_data
+    from jaxloc._model.mirrors import flip_active, flip_start
+
+    scenario = jaxloc.Scenario.paper("sequential")
+    truth, obs, _ = jaxloc.simulate_cycle(scenario, jr.key(2))
+    T_place, T_over = estimate_placements(truth.poses, "sequential")
+    flipped, defined = flip_start(T_place, T_over)
+    assert bool(defined)
+    m = jnp.mean(T_place[:, 4:], axis=0)
+    c, c2 = T_over[4:], flipped[4:]
+    np.testing.assert_allclose(jnp.linalg.norm(c2 - m), jnp.linalg.norm(c - m), rtol=1e-12)
+    assert float(jnp.linalg.norm(c2 - c)) > 0.1
+    p = T_place[:, 4:] - m[None]
+    normal = jnp.linalg.eigh(p.T @ p)[1][:, 0]
+    v, v2 = safe_normalize(m - c), safe_normalize(m - c2)
+    np.testing.assert_allclose(jnp.dot(v, normal), jnp.dot(v2, normal), atol=1e-12)
+    np.testing.assert_allclose(jnp.cross(v + v2, normal), 0.0, atol=1e-12)
+    # The camera's view of the centroid turns with it: same direction in its own frame.
+    R, R2 = jaxlie.SE3(T_over).rotation(), jaxlie.SE3(flipped).rotation()
+    np.testing.assert_allclose(R.inverse() @ (m - c), R2.inverse() @ (m - c2), atol=1e-12)
+    back, _ = flip_start(T_place, flipped)
+    np.testing.assert_allclose(back[4:], T_over[4:], atol=1e-12)
+    np.testing.assert_allclose(jnp.abs(jnp.dot(back[:4], T_over[:4])), 1.0, atol=1e-12)
+    above = T_over.at[4:].set(m + 3.0 * normal)
+    assert not bool(flip_start(T_place, above)[1])
+    np.testing.assert_array_equal(flip_start(T_place, above)[0], above)
+    data = cycle_data(obs, scenario.rig)
+    assert not bool(flip_active(data))
+    m_mask = np.zeros((4, 3, 3), bool)
+    m_mask[1, 2, 0] = True
+    thinned = _without(obs, jnp.asarray(m_mask), jnp.zeros((4, 3), bool))
+    assert bool(flip_active(cycle_data(thinned, scenario.rig)))

@@ -85,6 +85,8 @@ def test_one_step_with_a_pose_prior_and_the_scale(cycle):
     prior = jaxloc.OneStepPrior.pose_prior(T_body, cov).with_scale(true_perimeter, 0.02)
     est = jaxloc.localize_one_step(jaxloc.Snapshot.of(obs, 0), scenario.rig, prior)
     assert est.result == RESULTS.successful
+    # Every overhead sighting and prior row agrees with the rest.
+    assert 0.0 < float(est.checks.worst_sighting) <= 1.0
     err = np.linalg.norm(np.asarray(est.T_world_climber[4:] - T_body[4:]))
     assert err < 0.1  # 2 px noise, one formation: centimetres
     sigma = np.sqrt(np.trace(np.asarray(est.position_covariance)))

@@ -29,9 +29,9 @@ class RESULTS(optx.RESULTS):  # pyright: ignore[reportGeneralTypeIssues]
         "(99.9% quantile): a wrong local minimum or branch, or an outlier measurement."
     )
     ambiguous = (
-        "Several distinct poses fit the measurements about equally well (two minima within "
-        "chi-square 4, or several exact P3P roots): the data do not tell which is the pose; "
-        "the best fitting one is returned."
+        "Another distinct pose fits the measurements about as well or better (a minimum "
+        "less than chi-square 4 above the estimate's, or several exact P3P roots): the data "
+        "do not tell which is the pose; the returned one is a candidate, not the answer."
     )
     unobservable = (
         "The measurements do not determine the pose: the Fisher information is singular, "

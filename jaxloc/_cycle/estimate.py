@@ -58,9 +58,9 @@ class FitCheck(eqx.Module):
     - `observable`: the information matrix at the estimate is positive definite and every
       final pose's bound is below the documented limits (else `unobservable`).
     - `worst_sighting`: the largest normalized residual of any one measurement (a pixel
-      sighting or an odometry distance) relative to its limit
-      (`jaxloc._model.gates.worst_sighting`); above 1 the estimate is `inconsistent_fit`.
-      NaN where not computed (the one-step update, the smoother, a start).
+      sighting, an odometry distance, a prior's row) relative to its limit
+      (`jaxloc._model.gates.worst_measurement`); above 1 the estimate is
+      `inconsistent_fit`. NaN where not computed (the smoother, a start).
     """
 
     solver_result: RESULTS

@@ -68,7 +68,7 @@ from .measurements import (
     unpack,
     whitened_blocks,
 )
-from .mirrors import CONVERGED_DECREMENT, mirror_start, MIRROR_STEPS
+from .mirrors import CONVERGED_DECREMENT, flip_active, flip_start, mirror_start, MIRROR_STEPS
 
 
 #: Quantile of the chi-square gate's threshold.
@@ -174,18 +174,26 @@ def standardized_squares(r, J, covariance, pairs: int, floor):
     return pixel, rows**2 / (jnp.maximum(1.0 - leverage, 0.0) + floor)
 
 
-def worst_sighting(r, J, covariance, data: CycleData, noise_model: str) -> Float[Array, ""]:
+def worst_measurement(r, J, covariance, pairs: int, num_measurements, noise_model: str):
     """The largest [`standardized_squares`][] statistic of any one measurement relative to
-    its limit ([`sighting_limits`][]; above 1: that measurement contradicts the others),
-    from whitened residuals `r` `(m,)` at the linearized optimum, their Jacobian `J`
-    `(m, n)` and `covariance = (J^T J)^-1` `(n, n)`, rows as [`whitened_blocks`][]
-    orders them (pixel sightings as row pairs, then the odometry distances)."""
-    pairs = (r.shape[0] - data.odometry.shape[-1]) // 2
-    t_pixel, t_odometry = standardized_squares(r, J, covariance, pairs, MIN_REDUNDANCY)
-    pixel, distance = sighting_limits(data.num_sightings + data.num_odometry, noise_model, r.dtype)
+    its limit ([`sighting_limits`][] over `num_measurements`; above 1: that measurement
+    contradicts the others), from whitened residuals `r` `(m,)` at the linearized
+    optimum, their Jacobian `J` `(m, n)` and `covariance = (J^T J)^-1` `(n, n)`; the
+    first `2 pairs` rows are pixel sightings (row pairs), the rest single rows (odometry
+    distances, priors). Rows of a missing measurement (zero weight) score 0."""
+    t_pixel, t_single = standardized_squares(r, J, covariance, pairs, MIN_REDUNDANCY)
+    pixel, single = sighting_limits(num_measurements, noise_model, r.dtype)
     return jnp.maximum(
-        jnp.max(t_pixel, initial=0.0) / pixel, jnp.max(t_odometry, initial=0.0) / distance
+        jnp.max(t_pixel, initial=0.0) / pixel, jnp.max(t_single, initial=0.0) / single
     )
+
+
+def worst_sighting(r, J, covariance, data: CycleData, noise_model: str) -> Float[Array, ""]:
+    """[`worst_measurement`][] of a cycle's fit, rows as [`whitened_blocks`][] orders them
+    (pixel sightings as row pairs, then the odometry distances)."""
+    pairs = (r.shape[0] - data.odometry.shape[-1]) // 2
+    num_measurements = data.num_sightings + data.num_odometry
+    return worst_measurement(r, J, covariance, pairs, num_measurements, noise_model)
 
 
 def formation_size(T_place: Float[Array, "placements 7"]) -> Float[Array, ""]:
@@ -267,37 +275,47 @@ def _polished(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish:
     return P, O, r, B
 
 
-def _mirror_minimum(P, O, data: CycleData, rig: Rig, strategy: str):
-    """The mirror minimum of the point `(P, O)`: `MIRROR_STEPS` Gauss--Newton steps from
-    its [`mirror_start`][], then one evaluation. Returns `(chi-square, distance)`: the
-    polished mirror's chi-square (`inf` when no move qualifies or it is not a minimum: a
-    failed solve, or a last step that still predicted a decrease of `CONVERGED_DECREMENT`
-    or more) and how far (m) its mirrored placement is from `P`'s.
+def _second_minimum(P, O, data: CycleData, rig: Rig, strategy: str):
+    """The chi-square of the best second minimum of the point `(P, O)` (`inf` if none):
+    `MIRROR_STEPS` Gauss--Newton steps from its [`mirror_start`][] and from its
+    [`flip_start`][], then one evaluation each. A start counts when it is active, its
+    polished point is a minimum (every solve succeeded and the last step predicted a
+    decrease below `CONVERGED_DECREMENT`) and it is more than `DISTINCT_MINIMUM` from
+    the point (the mirrored placement, resp. the overhead camera's centre).
 
-    A `while_loop` that runs only while the mirror is active: under `vmap` a batch in
-    which no point lacks an overhead sighting of a moved placement (almost every clean
-    batch) takes no step. The mirror carries no derivatives (its inputs are
-    stop-gradient'ed: only the status depends on it), so the loop need not be
-    reverse-differentiable."""
+    Both starts as one `vmap` over a `while_loop` that runs only while a start is
+    active: a batch in which no point lacks a sighting (almost every clean batch) takes
+    no step. The starts carry no derivatives (their inputs are stop-gradient'ed: only
+    the status depends on them), so the loop need not be reverse-differentiable."""
     P, O, data, rig = jax.lax.stop_gradient((P, O, data, rig))
-    start, index, active = mirror_start(P, data, strategy)
+    mirrored, index, mirror_on = mirror_start(P, data, strategy)
+    flipped, flip_defined = flip_start(P, O)
+    starts = jnp.stack([mirrored, P]), jnp.stack([O, flipped])
+    active = jnp.stack([mirror_on, flip_defined & flip_active(data)])
 
-    def body(carry):
-        i, X, _, decrement, ok = carry
-        moved, r, _, predicted, solved = _gauss_newton_step(X, data, rig, strategy)
-        last = i == MIRROR_STEPS  # evaluate there, do not move
-        X = jax.tree.map(lambda a, b: jnp.where(last, b, a), moved, X)
-        decrement = jnp.where(last, decrement, predicted)
-        return i + 1, X, jnp.sum(r**2), decrement, ok & (last | solved)
+    def polished(start, active):
+        def body(carry):
+            i, X, _, decrement, ok = carry
+            moved, r, _, predicted, solved = _gauss_newton_step(X, data, rig, strategy)
+            last = i == MIRROR_STEPS  # evaluate there, do not move
+            X = jax.tree.map(lambda a, b: jnp.where(last, b, a), moved, X)
+            decrement = jnp.where(last, decrement, predicted)
+            return i + 1, X, jnp.sum(r**2), decrement, ok & (last | solved)
 
-    inf = jnp.array(jnp.inf, P.dtype)
-    carry = (jnp.array(0), (start, O), inf, inf, jnp.array(True))
-    _, X, chi2, decrement, ok = jax.lax.while_loop(
-        lambda c: active & (c[0] <= MIRROR_STEPS), body, carry
-    )
-    minimum = active & ok & (decrement < CONVERGED_DECREMENT) & jnp.isfinite(chi2)
-    distance = jnp.linalg.norm(X[0][index, 4:] - P[index, 4:])
-    return jnp.where(minimum, chi2, jnp.inf), distance
+        inf = jnp.array(jnp.inf, P.dtype)
+        carry = (jnp.array(0), start, inf, inf, jnp.array(True))
+        _, X, chi2, decrement, ok = jax.lax.while_loop(
+            lambda c: active & (c[0] <= MIRROR_STEPS), body, carry
+        )
+        minimum = active & ok & (decrement < CONVERGED_DECREMENT) & jnp.isfinite(chi2)
+        return X, jnp.where(minimum, chi2, inf)
+
+    (X_place, X_over), chi2 = jax.vmap(polished)(starts, active)
+    distance = jnp.stack([
+        jnp.linalg.norm(X_place[0, index, 4:] - P[index, 4:]),
+        jnp.linalg.norm(X_over[1, 4:] - O[4:]),
+    ])  # fmt: skip
+    return jnp.min(jnp.where(distance > DISTINCT_MINIMUM, chi2, jnp.inf))
 
 
 def mark_ambiguous(result: RESULTS, chi2, runner_up_chi2) -> RESULTS:
@@ -437,12 +455,13 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
     refinement). `rivals`: per point, `None` or other starts `(T_place (k, placements,
     7), T_over (k, 7), active (k,))` (a closed form's other local minima, see
     [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
-    estimate `ambiguous`. So does, for every point, the mirror minimum of a moved
-    placement the overhead camera does not see ([`jaxloc._model.mirrors`][]) when it is
-    more than `DISTINCT_MINIMUM` from the point's own placement. The polish, the gates'
-    Jacobian and the rivals' polish come from one Gauss--Newton `fori_loop`, mapped over
-    the points and the rivals together; the mirror from a second, early-exit
-    `while_loop` over the points alone, which a batch with no mirror to look for skips."""
+    estimate `ambiguous`. So does, for every point, a second minimum
+    ([`jaxloc._model.mirrors`][]): the mirror of a moved placement the overhead camera
+    does not see, or the overhead camera's planar flip when a sighting is missing, when
+    it is distinct from the point. The polish, the gates' Jacobian and the rivals'
+    polish come from one Gauss--Newton `fori_loop`, mapped over the points and the
+    rivals together; the second minima from an early-exit `while_loop` over the points
+    alone, which a batch with nothing to look for skips."""
     rivals = rivals or [None] * len(points)
     if not polish and any(r is not None for r in rivals):
         raise ValueError("gate_all: rivals are compared at their polished optima; pass polish=True")
@@ -455,9 +474,9 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
         return _polished(p.T_place, p.T_over, p.data, rig, strategy, polish)
 
     P, O, r, B = jax.vmap(polished)(lanes)
-    mirror_chi2, distance = jax.vmap(
-        lambda P, O, data: _mirror_minimum(P, O, data, rig, strategy)
-    )(P[:n], O[:n], stacked.data)
+    mirror = jax.vmap(lambda P, O, data: _second_minimum(P, O, data, rig, strategy))(
+        P[:n], O[:n], stacked.data
+    )
 
     def one(p: GatePoint, P, O, r, B):
         return _gates_at(
@@ -466,7 +485,6 @@ def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, 
         )  # fmt: skip
 
     out = jax.vmap(one)(stacked, P[:n], O[:n], r[:n], B[:n])
-    mirror = jnp.where(distance > DISTINCT_MINIMUM, mirror_chi2, jnp.inf)
     rival_chi2 = jnp.sum(r[n:] ** 2, axis=-1)
     gates, lane = [], n
     for i, rival in enumerate(rivals):

@@ -59,6 +59,7 @@ from .._model.gates import (
     MAX_RELATIVE_POSITION_BOUND,
     MAX_ROTATION_BOUND,
     nonsingular_information,
+    worst_measurement,
 )
 from .._model.measurements import CycleData, pixel_weights, rotations, whitened_with_jacobian
 from .._solvers.mutual import mutual_localization
@@ -411,7 +412,8 @@ def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Root
                  R_robots, up, mount):  # fmt: skip
     """Maximum a posteriori pose and scale from the chosen root: the three overhead pixels
     and the priors, whitened. Returns the solver's output, its start flag, the covariance
-    `(7, 7)` with its flag, and the final Gauss--Newton step."""
+    `(7, 7)` with its flag, the final Gauss--Newton step, and the whitened residuals
+    `(16,)` and their Jacobian `(16, 7)` where it ends."""
     dtype = snapshot.overhead.dtype
     R_m, t_m = rotations(mount), mount[4:]
     usable = roots.usable
@@ -449,16 +451,19 @@ def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Root
     )  # fmt: skip
     _, H, g = out.normal  # before the final Gauss--Newton step
     cov, cov_ok = unrolled_spd_inverse(H)
-    cov_ok = cov_ok & nonsingular_information(_model(out.x, prior, pb, camera)[1])
+    r, J = _model(out.x, prior, pb, camera)
+    cov_ok = cov_ok & nonsingular_information(J)
     step = jnp.where(cov_ok & start_ok, -cov @ g, 0.0)
-    return out, start_ok, cov, cov_ok, step
+    return out, start_ok, cov, cov_ok, step, (r, J)
 
 
 def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, cov, cov_ok,
-          step, T_ref):  # fmt: skip
+          step, fit, T_ref):  # fmt: skip
     """The estimate's [`FitCheck`][] and result: the solver's status, observability (its
-    position bound against the formation's size) and the chi-square gate, then
-    `ambiguous`."""
+    position bound against the formation's size), the chi-square gate and the test of
+    each overhead sighting and prior row against the rest
+    ([`jaxloc._model.gates.worst_measurement`][]; `fit`: the whitened residuals and their
+    Jacobian where the refinement ends), then `ambiguous`."""
     dtype = cov.dtype
     cost, _, g = out.normal
     R_b, _, d = out.x
@@ -487,12 +492,14 @@ def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, c
     solver = RESULTS.where(roots.nonfinite, RESULTS.nonfinite_observation, solver)
     result = RESULTS.where((solver == RESULTS.successful) & ~observable, RESULTS.unobservable,
                            solver)  # fmt: skip
-    result = RESULTS.where((result == RESULTS.successful) & ~(chi2 <= limit),
+    r, J = fit
+    worst = worst_measurement(r, J, cov, 3, count + prior_rows, rig.noise_model)
+    consistent = (chi2 <= limit) & (worst <= 1.0)
+    result = RESULTS.where((result == RESULTS.successful) & ~consistent,
                            RESULTS.inconsistent_fit, result)  # fmt: skip
     result = RESULTS.where((result == RESULTS.successful) & roots.ambiguous, RESULTS.ambiguous,
                            result)  # fmt: skip
-    unchecked = jnp.full((), jnp.nan, dtype)
-    return FitCheck(solver, cost, chi2, dof, limit, observable, unchecked), result
+    return FitCheck(solver, cost, chi2, dof, limit, observable, worst), result
 
 
 @eqx.filter_jit
@@ -501,9 +508,9 @@ def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     mount = rig.mounts[0].astype(dtype)
     mutual, T_ref, u, R_robots, up = _formation(snapshot)
     roots = _choose_root(snapshot, u, up, mount, prior)
-    out, start_ok, cov, cov_ok, step = _refine_root(snapshot, rig, prior, roots, u, R_robots,
-                                                    up, mount)  # fmt: skip
-    checks, result = _gate(rig, prior, mutual, roots, out, start_ok, cov, cov_ok, step,
+    out, start_ok, cov, cov_ok, step, fit = _refine_root(snapshot, rig, prior, roots, u,
+                                                         R_robots, up, mount)  # fmt: skip
+    checks, result = _gate(rig, prior, mutual, roots, out, start_ok, cov, cov_ok, step, fit,
                            T_ref)  # fmt: skip
     R_b, p_b, d = out.x
     # Outputs as poses (one batched matrix -> quaternion conversion).
