@@ -60,7 +60,7 @@ class FitCheck(eqx.Module):
     - `worst_sighting`: the largest normalized residual of any one measurement (a pixel
       sighting, an odometry distance, a prior's row) relative to its limit
       (`jaxloc._model.gates.worst_measurement`); above 1 the estimate is
-      `inconsistent_fit`. NaN where not computed (the smoother, a start).
+      `inconsistent_fit`. NaN where not computed (a start).
     """
 
     solver_result: RESULTS

@@ -51,7 +51,7 @@ from .._core.results import RESULTS, status_code
 from .._cycle.estimate import FitCheck
 from .._cycle.layout import num_moves, num_placements, num_steps, placement_ids
 from .._cycle.rig import Rig
-from .._model.gates import chi2_limit
+from .._model.gates import chi2_limit, worst_measurement
 from .._model.measurements import CycleData, residual_poses, whitened_with_jacobian
 from .frames import adjoint, body_of_overhead
 
@@ -415,8 +415,11 @@ def newest_end(layout: WindowLayout, state: SmootherState, s, covariance, rig: R
     return poses, A @ cov @ A.T
 
 
-def _gates(layout, state, r, J, covariance_ok, observable_cycle):
-    """Chi-square and observability of the window at its solution."""
+def _gates(layout, state, r, J, covariance, covariance_ok, observable_cycle, noise_model):
+    """Chi-square, observability and the test of each measurement against the rest
+    ([`jaxloc._model.gates.worst_measurement`][]: every pixel sighting of the window, and
+    every odometry distance, climbing-robot odometry row and prior row) of the window at
+    its solution."""
     dtype = r.dtype
     chi2 = jnp.sum(r * r)
     act = state.active
@@ -430,9 +433,19 @@ def _gates(layout, state, r, J, covariance_ok, observable_cycle):
     gaussian = odometry + 6 * edges + 24 * state.prior_active.astype(jnp.int32)
     unknowns = 6 * jnp.sum(~pinned(layout, state))
     dof = (2 * sightings + gaussian - unknowns).astype(jnp.int32)
-    limit = chi2_limit(dof, sightings, gaussian, "paper", dtype)
+    limit = chi2_limit(dof, sightings, gaussian, noise_model, dtype)
     observable = covariance_ok & observable_cycle & (dof > 0)
-    return chi2, dof, limit, observable
+    # Rows reordered as the test takes them: every slot's pixel pairs, then single rows.
+    m, moves = layout.rows_per_cycle, state.data.odometry.shape[-1]
+    pairs = (m - moves) // 2
+    cycle_rows = np.arange(layout.window)[:, None] * m
+    pixel_rows = (cycle_rows + np.arange(2 * pairs)[None]).reshape(-1)
+    single_rows = np.concatenate([(cycle_rows + 2 * pairs + np.arange(moves)[None]).reshape(-1),
+                                  np.arange(layout.window * m, r.shape[0])])  # fmt: skip
+    order = np.concatenate([pixel_rows, single_rows])
+    worst = worst_measurement(r[order], J[order], jnp.where(covariance_ok, covariance, 0.0),
+                              layout.window * pairs, sightings + gaussian, noise_model)  # fmt: skip
+    return chi2, dof, limit, observable, worst
 
 
 def solve_window(
@@ -499,10 +512,12 @@ def smoother_update(
     state, s = insert(layout, state, data, climber, climber_sigma, T_place, T_over, rig)
     state, r, J, num_steps, converged = solve_window(layout, state, rig)
     covariance, cov_ok = spd_inverse(information(layout, state, J))
-    chi2, dof, limit, observable = _gates(layout, state, r, J, cov_ok, start_observable)
+    chi2, dof, limit, observable, worst = _gates(layout, state, r, J, covariance, cov_ok,
+                                                 start_observable, rig.noise_model)  # fmt: skip
     result = RESULTS.where(converged, RESULTS.successful, RESULTS.nonlinear_max_steps_reached)
     result = RESULTS.where(observable, result, RESULTS.unobservable)
-    result = RESULTS.where((result == RESULTS.successful) & ~(chi2 <= limit),
+    consistent = (chi2 <= limit) & (worst <= 1.0)
+    result = RESULTS.where((result == RESULTS.successful) & ~consistent,
                            RESULTS.inconsistent_fit, result)  # fmt: skip
     result = RESULTS.where(start_result == RESULTS.successful, result, start_result)
     code = jnp.where(state.status == 0, status_code(result), state.status)
@@ -510,7 +525,7 @@ def smoother_update(
     result = RESULTS.where(code == 0, RESULTS.successful, result)
     result = _result_of_code(code, result)
     poses, cov = newest_end(layout, state, s, covariance, rig)
-    checks = FitCheck(result, chi2, chi2, dof, limit, observable, jnp.full_like(chi2, jnp.nan))
+    checks = FitCheck(result, chi2, chi2, dof, limit, observable, worst)
     return state, SmootherEstimate(poses, cov, result, checks, num_steps)
 
 
