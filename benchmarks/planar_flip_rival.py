@@ -1,19 +1,19 @@
-"""A planar-flip rival for the gates (issue 17; measured, not yet in jaxloc).
+"""The planar-flip rival of the gates (issue 17), measured on its own.
 
     python benchmarks/planar_flip_rival.py [--cycles 2048]
 
 The ground robots stand on a floor, so the overhead camera sees nearly coplanar points and
 may sit in the mirror (flipped) pose of that plane: a second local minimum only the
-perspective tells apart. The flip of a polished gate point `(P, O)`: `m` the placements'
-centroid, `n` the floor normal (their smallest-variance direction, towards C), `v` the
-unit line of sight from C's centre `c` to `m`; C's centre and orientation rotated about
-`m` by `-2 theta` around `n x (-v)`, `theta` the angle between `n` and `-v`. The flip is
+perspective tells apart. The flip of a polished gate point `(P, O)` is
+`jaxloc._model.mirrors.flip_start` (which the gates run only when a sighting is missing;
+here it is run on every cycle, to measure what it would do on full data). It is
 polished by `jaxloc._model.gates.MIRROR_STEPS` Gauss--Newton steps and evaluated once, and
 judged by the mirror's rule (converged, more than `DISTINCT_MINIMUM` away, chi-square
 within `AMBIGUITY_MARGIN`).
 
 Prints (1) for missing-data cycle 1129 of `benchmarks/missing_data.py` (sequential, seed
-0, probability 0.05; its closed form is `successful` with C 3.7 m off) the chi-square of
+0, probability 0.05; its closed form was `successful` with C 3.7 m off until the gates
+looked for the flip, 750bcfb) the chi-square of
 the gate point, of the polished flip and C's position; (2) on `--cycles` clean cycles of
 the paper's scenario per strategy (`split(key(0), N)`), how many `successful` closed
 forms the flip would make `ambiguous`.
@@ -28,25 +28,11 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import jax.random as jr  # noqa: E402
-import jaxlie  # noqa: E402
 import jaxloc  # noqa: E402
 import numpy as np  # noqa: E402
 from jaxloc._model import gates  # noqa: E402
 from jaxloc._model.measurements import cycle_data  # noqa: E402
-
-
-def flip(P, O):
-    """The overhead camera `O` (`wxyz_xyz`) flipped about the placements `P`'s floor."""
-    p = P[:, 4:]
-    m = jnp.mean(p, 0)
-    _, V = jnp.linalg.eigh((p - m).T @ (p - m))
-    c = O[4:]
-    n = jnp.where(jnp.dot(c - m, V[:, 0]) < 0, -V[:, 0], V[:, 0])
-    v = (m - c) / jnp.linalg.norm(m - c)
-    axis = jnp.cross(n, -v)
-    s = jnp.linalg.norm(axis)
-    R = jaxlie.SO3.exp(axis / s * (-2.0 * jnp.arctan2(s, jnp.dot(n, -v))))
-    return jnp.concatenate([(R @ jaxlie.SE3(O).rotation()).wxyz, m + R @ (c - m)])
+from jaxloc._model.mirrors import flip_start  # noqa: E402
 
 
 def gate_and_flip(scenario, obs):
@@ -57,7 +43,7 @@ def gate_and_flip(scenario, obs):
     data = cycle_data(obs, scenario.rig)
     point = gates.gate_point(closed, data, strategy)
     P, O, r, _ = gates._polished(point.T_place, point.T_over, data, scenario.rig, strategy, True)
-    X, decrement = (P, flip(P, O)), jnp.inf
+    X, decrement = (P, flip_start(P, O)[0]), jnp.inf
     for i in range(gates.MIRROR_STEPS + 1):
         moved, r_flip, _, predicted, _ = gates._gauss_newton_step(X, data, scenario.rig, strategy)
         if i < gates.MIRROR_STEPS:
