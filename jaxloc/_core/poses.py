@@ -9,6 +9,7 @@ identity or at 180°.
 
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Scalar
 
 from .linalg import max_trace_rotation
@@ -118,17 +119,77 @@ def position_error(p_a: Float[Array, "3"], p_b: Float[Array, "3"]) -> Scalar:
 
 
 
+# R_ij = sum_ab _QUAT_TO_MATRIX[i, j, a, b] q_a q_b / |q|^2 for q = (w, x, y, z): the
+# rotation matrix as one constant bilinear form (a few fused kernels, where building it
+# entry by entry is a stack of nine scalars).
+_QUAT_TO_MATRIX = np.zeros((3, 3, 4, 4))
+for _i, _j, _terms in [
+    (0, 0, [(0, 0, 1), (1, 1, 1), (2, 2, -1), (3, 3, -1)]),
+    (1, 1, [(0, 0, 1), (1, 1, -1), (2, 2, 1), (3, 3, -1)]),
+    (2, 2, [(0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, 1)]),
+    (0, 1, [(1, 2, 2), (0, 3, -2)]), (1, 0, [(1, 2, 2), (0, 3, 2)]),
+    (0, 2, [(1, 3, 2), (0, 2, 2)]), (2, 0, [(1, 3, 2), (0, 2, -2)]),
+    (1, 2, [(2, 3, 2), (0, 1, -2)]), (2, 1, [(2, 3, 2), (0, 1, 2)]),
+]:
+    for _a, _b, _c in _terms:
+        _QUAT_TO_MATRIX[_i, _j, _a, _b] = _c
+# (p q)_i = sum_ab _HAMILTON[i, a, b] p_a q_b, the quaternion product (w, x, y, z).
+_HAMILTON = np.zeros((4, 4, 4))
+for _i, _a, _b, _c in [
+    (0, 0, 0, 1), (0, 1, 1, -1), (0, 2, 2, -1), (0, 3, 3, -1),
+    (1, 0, 1, 1), (1, 1, 0, 1), (1, 2, 3, 1), (1, 3, 2, -1),
+    (2, 0, 2, 1), (2, 2, 0, 1), (2, 3, 1, 1), (2, 1, 3, -1),
+    (3, 0, 3, 1), (3, 3, 0, 1), (3, 1, 2, 1), (3, 2, 1, -1),
+]:
+    _HAMILTON[_i, _a, _b] = _c
+
+
+def quaternion_matrix(wxyz: Float[Array, "*b 4"]) -> Float[Array, "*b 3 3"]:
+    """Rotation matrices of quaternions `wxyz` (any leading shape; normalized here), in
+    their dtype: `jaxlie.SO3(wxyz).as_matrix()` as one bilinear form."""
+    q = jnp.asarray(wxyz)
+    C = jnp.asarray(_QUAT_TO_MATRIX, q.dtype).reshape((1,) * (q.ndim - 1) + (3, 3, 4, 4))
+    outer = q[..., :, None] * q[..., None, :]
+    R = jnp.sum(C * outer[..., None, None, :, :], axis=(-2, -1))
+    return R / jnp.sum(q * q, axis=-1)[..., None, None]
+
+
+def _rplus_wxyz_xyz(params: Float[Array, "7"], delta: Float[Array, "6"]) -> Float[Array, "7"]:
+    """`params exp(delta)` on `wxyz_xyz`, `delta = (v, omega)` (jaxlie's SE(3) tangent),
+    with SE(3)'s exponential written out (Taylor series below `theta^2 = 1e-6`, safe
+    gradients at 0)."""
+    dtype = params.dtype
+    delta = delta.astype(dtype)
+    v, w = delta[:3], delta[3:]
+    theta2 = jnp.sum(w * w)
+    small = theta2 < 1e-6
+    t2 = jnp.where(small, 1.0, theta2)
+    theta = jnp.sqrt(t2)
+    half_sin = jnp.where(small, 0.5 - theta2 / 48.0, jnp.sin(0.5 * theta) / theta)
+    q_delta = jnp.concatenate([jnp.where(small, 1.0 - theta2 / 8.0, jnp.cos(0.5 * theta))[None],
+                               half_sin * w])  # fmt: skip
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / t2)
+    c = jnp.where(small, 1.0 / 6.0 - theta2 / 120.0, (theta - jnp.sin(theta)) / (t2 * theta))
+    wv = jnp.cross(w, v)
+    t_delta = v + b * wv + c * jnp.cross(w, wv)
+    q = params[:4]
+    H = jnp.asarray(_HAMILTON, dtype)
+    q_new = jnp.sum(H * q[None, :, None] * q_delta[None, None, :], axis=(1, 2))
+    t_new = params[4:] + jnp.sum(quaternion_matrix(q) * t_delta[None, :], axis=-1)
+    return jnp.concatenate([q_new, t_new])
+
+
 def rplus(T: jaxlie.SE3, delta: Float[Array, "6"]) -> jaxlie.SE3:
-    """`T exp(delta)` (jaxlie's right perturbation), in `T`'s dtype (jaxlie's `exp`
-    returns float64 under x64 even for float32 input)."""
-    dtype = T.wxyz_xyz.dtype
-    return jaxlie.SE3(jaxlie.manifold.rplus(T, delta).wxyz_xyz.astype(dtype))
+    """`T exp(delta)` (jaxlie's right perturbation `jaxlie.manifold.rplus`, `delta = (v,
+    omega)`), in `T`'s dtype (jaxlie's own `exp` returns float64 under x64 even for
+    float32 input)."""
+    return jaxlie.SE3(_rplus_wxyz_xyz(T.wxyz_xyz, jnp.asarray(delta)))
 
 
 def rplus_params(params: Float[Array, "7"], delta: Float[Array, "6"]) -> Float[Array, "7"]:
     """[`rplus`][] on `wxyz_xyz` parameters: a retraction for
     `jaxloc._core.least_squares.levenberg_marquardt` over one pose."""
-    return rplus(jaxlie.SE3(params), delta).wxyz_xyz
+    return _rplus_wxyz_xyz(params, jnp.asarray(delta))
 
 
 def identity_params(dtype) -> Float[Array, "7"]:

@@ -17,8 +17,6 @@ differentiated, by each model's closed-form `project_with_jacobian`. About 20x c
 than `jax.jacfwd` over the ~40 stacked tangent directions.
 """
 
-import functools as ft
-from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -28,8 +26,9 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._core.least_squares import NormalEquations
+from .._core.linalg import gram_dot
 from .._core.numerics import safe_norm
-from .._core.poses import rplus
+from .._core.poses import quaternion_matrix, rplus
 from .._core.robust import RobustLoss
 from .._cycle.layout import move_start_step, moving_robot, placement_ids
 from .._cycle.observations import CycleObservations, ODOMETRY_SIGMA_FLOOR
@@ -48,9 +47,7 @@ from .._cycle.sightings import (
 
 def rotations(T: Float[Array, "*b 7"]) -> Float[Array, "*b 3 3"]:
     """Rotation matrices of `wxyz_xyz` poses, any leading shape."""
-    flat = T.reshape(-1, 7)
-    R = jax.vmap(lambda w: jaxlie.SO3(w[:4]).as_matrix())(flat)
-    return R.reshape(T.shape[:-1] + (3, 3))
+    return quaternion_matrix(T[..., :4])
 
 
 class Geometry(eqx.Module):
@@ -412,56 +409,6 @@ def dense_jacobian(B: Float[Array, "m 2 6"], strategy: str) -> Float[Array, "m p
     return jnp.sum(jnp.asarray(at, B.dtype)[..., None] * B[:, :, None, :], axis=1)
 
 
-def _runs(rows: list[int]) -> list[tuple[int, int]]:
-    """Sorted row indices as `[start, stop)` runs of consecutive rows."""
-    runs: list[tuple[int, int]] = []
-    for row in sorted(rows):
-        if runs and runs[-1][1] == row:
-            runs[-1] = (runs[-1][0], row + 1)
-        else:
-            runs.append((row, row + 1))
-    return runs
-
-
-class _NormalPlan(NamedTuple):
-    """Which rows' products make each block of the normal equations, as runs of
-    consecutive rows (static; see [`normal_equations`][]). Unknown pose `u` is pose
-    `u + 1` (pose 0 is the gauge). `diagonal[u]`: runs of `(k, runs)`, rows whose block
-    `k` is pose `u`'s; `upper[(u, v)]` (`u < v`): runs of `(transposed, runs)`, rows
-    joining poses `u` and `v` (`transposed` when the row's first block is `v`'s)."""
-
-    diagonal: tuple
-    upper: dict
-    num_unknown_poses: int
-
-
-@ft.cache
-def _normal_plan(strategy: str) -> _NormalPlan:
-    poses = residual_poses(strategy)
-    n = int(poses.max())
-    diagonal = []
-    for u in range(1, n + 1):
-        diagonal.append(tuple((k, tuple(_runs(np.flatnonzero(poses[:, k] == u).tolist())))
-                              for k in (0, 1)))  # fmt: skip
-    upper = {}
-    for a, b in {(int(min(p)), int(max(p))) for p in poses if min(p) > 0}:
-        entries = []
-        for transposed in (False, True):
-            first, second = (b, a) if transposed else (a, b)
-            rows = np.flatnonzero((poses[:, 0] == first) & (poses[:, 1] == second))
-            entries.append((transposed, tuple(_runs(rows.tolist()))))
-        upper[(a - 1, b - 1)] = tuple(entries)
-    return _NormalPlan(tuple(diagonal), upper, n)
-
-
-def _sum_runs(x: Array, runs) -> Array:
-    """Sum of `x[start:stop]` over the runs (static slices: no gather)."""
-    total = jnp.zeros(x.shape[1:], x.dtype)
-    for start, stop in runs:
-        total = total + jnp.sum(x[start:stop], axis=0)
-    return total
-
-
 def normal_equations(
     T_place: Float[Array, "placements 7"],
     T_over: Float[Array, "7"],
@@ -479,9 +426,10 @@ def normal_equations(
     weighed by `rho'(s_i)` in `H` and `g`: one step of iteratively reweighted least
     squares, whose `g` is the exact half-gradient of that cost.
 
-    Each row touches two poses ([`whitened_blocks`][]): its three `6 x 6` products go to
-    two diagonal blocks and one off-diagonal block of `H`, summed over static runs of
-    rows (slices, no gathers), about a tenth of the products of `J^T J` with a dense `J`.
+    `H` is one dense `J^T J` of [`unknowns_jacobian`][] (one `dot`): about ten times
+    the products of summing each row's three `6 x 6` blocks where they belong, but a
+    few kernels where the block sums compile to a hundred (see
+    `benchmarks/localize_kernels.py`).
     """
     r, B = whitened_blocks(T_place, T_over, data, rig, strategy)
     if loss is None:
@@ -496,26 +444,5 @@ def normal_equations_of_blocks(
 ) -> NormalEquations:
     """[`normal_equations`][] of whitened residuals `r` and their blocks `B` (as
     [`whitened_blocks`][] returns them): `r^T r`, `J^T J` and `J^T r`."""
-    cost = jnp.sum(r * r)
-    plan = _normal_plan(strategy)
-    dtype = r.dtype
-    a, b = B[:, 0], B[:, 1]
-    outer = jnp.stack([a[:, :, None] * a[:, None, :], b[:, :, None] * b[:, None, :]], 1)
-    cross = a[:, :, None] * b[:, None, :]  # (m, 6, 6): block (first pose, second pose)
-    grads = B * r[:, None, None]  # (m, 2, 6)
-    n = plan.num_unknown_poses
-    zero = jnp.zeros((6, 6), dtype)
-    H = [[zero] * n for _ in range(n)]
-    g = []
-    for u, per_block in enumerate(plan.diagonal):
-        H[u][u] = sum((_sum_runs(outer[:, k], runs) for k, runs in per_block), start=zero)
-        g.append(sum((_sum_runs(grads[:, k], runs) for k, runs in per_block), jnp.zeros(6, dtype)))
-    for (u, v), entries in plan.upper.items():
-        block = zero
-        for transposed, runs in entries:
-            if runs:
-                part = _sum_runs(cross, runs)
-                block = block + (part.T if transposed else part)
-        H[u][v], H[v][u] = block, block.T
-    H = jnp.concatenate([jnp.concatenate(row, axis=1) for row in H], axis=0)
-    return NormalEquations(cost, H, jnp.concatenate(g))
+    J = unknowns_jacobian(B, strategy)
+    return NormalEquations(jnp.sum(r * r), gram_dot(J), jnp.einsum("mi,m->i", J, r))
