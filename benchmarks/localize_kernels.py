@@ -1,19 +1,21 @@
 """Where `jit(vmap(localize_cycle))`'s fused kernels come from, and what it costs (issue 19).
 
     python benchmarks/localize_kernels.py [--strategy sequential] [--batch 1024] [--top 30]
+                                          [--options]
 
 Compiles `jax.jit(jax.vmap(lambda o: jaxloc.localize_cycle(o, rig, throw=False)))` on
 `--batch` simulated cycles of the paper's scenario (`split(key(0), batch)`) in a fresh
-cache, then prints: the fused kernels of the compiled program, the CPU and wall seconds of
-lowering and compiling, the run time per problem (best of 3 calls), the share of
-`successful` cycles and C's mean position (to compare two versions of the code: run it with
-`PYTHONPATH` pointing at a `git worktree` of the other commit). Then the kernels counted
-by the JAX path in their `op_name` metadata (the transformations and nested `jit`s down to
-the op, the op itself dropped): jaxlie's rotation code shows as `jit(as_matrix)`,
-`jit(exp)`, `jit(log)`, loops as `while/body`. (Their `stack_frame_id` chains stop at loop
-bodies, so the Python source is not a reliable key; `benchmarks/kernel_sources.py` keys
-a study program's kernels by source line.)
-"""
+cache (with `--options`, under `compiler_options=jaxloc.compiler_options()`, the XLA
+options jaxloc's own entry points and studies compile with), then prints: the fused
+kernels of the compiled program, the CPU and wall seconds of lowering and compiling, the
+run time per problem (best of 3 calls), the share of `successful` cycles and C's mean
+position (to compare two versions of the code: run it with `PYTHONPATH` pointing at a
+`git worktree` of the other commit). Then the kernels counted by the JAX path in their
+`op_name` metadata (the transformations and nested `jit`s down to the op, the op itself
+dropped): jaxlie's rotation code shows as `jit(as_matrix)`, `jit(exp)`, `jit(log)`,
+loops as `while/body`. (Their `stack_frame_id` chains stop at loop bodies, so the Python
+source is not a reliable key; `benchmarks/kernel_sources.py` keys a study program's
+kernels by source line.)"""
 
 import argparse
 import collections
@@ -43,13 +45,15 @@ def main() -> None:
     parser.add_argument("--strategy", default="sequential")
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--top", type=int, default=30)
+    parser.add_argument("--options", action="store_true")
     args = parser.parse_args()
     scenario = jaxloc.Scenario.paper(args.strategy)
     keys = jr.split(jr.key(0), args.batch)
     obs = jax.jit(jax.vmap(lambda k: jaxloc.simulate_cycle(scenario, k)[1]))(keys)
     fn = jax.vmap(lambda o: jaxloc.localize_cycle(o, scenario.rig, throw=False))
     c0, t0 = _cpu(), time.perf_counter()
-    compiled = jax.jit(fn).lower(obs).compile()
+    options = jaxloc.compiler_options() if args.options else None
+    compiled = jax.jit(fn, compiler_options=options).lower(obs).compile()
     cpu, wall = _cpu() - c0, time.perf_counter() - t0
     best = np.inf
     for _ in range(3):
@@ -60,7 +64,8 @@ def main() -> None:
                if line.startswith("  %") and " fusion(" in line]  # fmt: skip
     ok = np.asarray(out.result._value) == 0
     mean_c = float(jnp.mean(out.poses.T_world_overhead.wxyz_xyz[:, 4:]))
-    print(f"{args.strategy}, batch {args.batch}: {len(fusions)} fused kernels; lower+compile "
+    print(f"{args.strategy}, batch {args.batch}, options {options}: {len(fusions)} fused "
+          f"kernels; lower+compile "
           f"{cpu:.1f} CPU-s ({wall:.1f} s wall); {best / args.batch * 1e6:.0f} us per problem; "
           f"successful {ok.mean():.4f}; mean of C's coordinates {mean_c:.9f}")  # fmt: skip
     paths = collections.Counter()

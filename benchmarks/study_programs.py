@@ -40,6 +40,7 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     import jaxloc._study.engine as mc
     from jaxloc import Scenario
+    from jaxloc._core.compiler import CPU_OPTIONS
     from jaxloc._study.trial import METHODS
 
     chunk = mc.balanced_chunk_size(10_000)
@@ -56,7 +57,7 @@ def main() -> None:
               f"{fusions} fusions (chunk {chunk}, {jax.device_count()} devices)", flush=True)
         if not args.ab_ynn:
             continue
-        ynn_on = dict(mc.LARGE_PROGRAM_COMPILER_OPTIONS)
+        ynn_on = dict(CPU_OPTIONS)
         del ynn_on["xla_cpu_experimental_ynn_fusion_type"]  # XLA's default: on
         with_ynn = eqx.filter_jit(mc._chunk_trials, compiler_options=ynn_on)
         times = {"without YNNPACK (jaxloc)": [], "with YNNPACK (XLA default)": []}

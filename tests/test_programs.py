@@ -87,3 +87,26 @@ def test_a_static_description_holds_every_value():
     assert describe(jaxloc.Limits()) != describe(jaxloc.Limits(separation=0.2))
     assert describe((np.zeros(2), "a")) != describe((np.ones(2), "a"))  # arrays by value
     assert describe((1.0, None)) != describe((1.0,))  # structure
+
+
+def test_compiler_options_apply_at_the_top_level_only():
+    """`jaxloc._core.compiler.jit`: the CPU options on an eager call (JAX rejects options
+    on a nested jit), none inside a caller's `jit` or `vmap`; the same numbers."""
+    import jaxloc
+    from jaxloc._core import compiler
+
+    assert jaxloc.compiler_options() == (
+        compiler.CPU_OPTIONS if jax.default_backend() == "cpu" else {}
+    )
+    f = compiler.jit(lambda x: jnp.sin(x) * 2.0)
+    x = jnp.linspace(0.0, 1.0, 4)
+    eager = f(x)
+    assert list(f._jitted) == [True]
+    nested = jax.jit(f)(x)
+    mapped = jax.vmap(f)(x)
+    inlined = jax.jit(compiler.jit(inline=True)(lambda x: jnp.sin(x) * 2.0))(x)
+    assert sorted(f._jitted) == [False, True]
+    for y in (nested, mapped, inlined):
+        np.testing.assert_allclose(y, eager, rtol=1e-15)
+    lowered = f.lower(x)
+    np.testing.assert_allclose(lowered.compile()(x), eager, rtol=1e-15)

@@ -106,6 +106,30 @@ def test_one_step_with_a_pose_prior_and_the_scale(cycle):
     assert np.max(np.abs(np.asarray(est.T_world_body[:, 4:]) - true_ground)) < 0.05
 
 
+def test_one_step_names_a_wrong_prior_row_that_the_total_chi_square_passes():
+    """A prior 4.6 sigma off along the body's z (0.92 m) on near-exact sightings: the
+    total chi-square stays below its limit (that row's misfit spread over 6 degrees of
+    freedom), the per-measurement test of the prior's rows does not, and the update is
+    `inconsistent_fit`; the same prior at the truth is `successful`."""
+    scenario = jaxloc.Scenario.paper(pixel_sigma=1e-3)
+    truth, obs, feasible = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
+    assert bool(feasible)
+    rig = jaxloc.Scenario.paper().rig  # weighs the sightings at 2 px
+    T_body = _true_body(scenario, truth)
+    sigma = np.array([0.2] * 3 + [np.radians(5.0)] * 3)
+    true_perimeter = perimeter(truth.poses.T_world_body.wxyz_xyz[0, :, 4:])
+    snap = jaxloc.Snapshot.of(obs, 0)
+    for offset, expected in [(0.0, RESULTS.successful), (4.6, RESULTS.inconsistent_fit)]:
+        delta = jnp.zeros(6).at[2].set(offset * sigma[2])
+        T_prior = (jaxlie.SE3(T_body) @ jaxlie.SE3.exp(delta)).wxyz_xyz
+        prior = jaxloc.OneStepPrior.pose_prior(T_prior, jnp.diag(jnp.asarray(sigma) ** 2))
+        est = jaxloc.localize_one_step(snap, rig, prior.with_scale(true_perimeter, 0.02),
+                                       throw=False)  # fmt: skip
+        assert est.result == expected
+        assert float(est.checks.chi2) <= float(est.checks.chi2_limit)
+        assert (float(est.checks.worst_sighting) > 1.0) == (offset > 0)
+
+
 def test_one_step_without_a_prior_cannot_fix_the_scale(cycle):
     scenario, truth, obs = cycle
     snap = jaxloc.Snapshot.of(obs, 0)

@@ -28,6 +28,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Float, PRNGKeyArray, Scalar
 
+from .._core.compiler import compiler_options
 from .._core.linalg import logdet3
 from .._core.programs import cached_program, describe
 from .._core.results import RESULTS
@@ -37,7 +38,7 @@ from .._refine.cycle import refine_cycle
 from .._sim.scenario import Scenario
 from .._sim.simulate import camera_points, sightings_in_view
 from .._solvers.localize import localize_cycle_methods
-from .._study.engine import LARGE_PROGRAM_COMPILER_OPTIONS, run_study
+from .._study.engine import run_study
 from .._study.trial import REFINE_MAX_STEPS, score
 from .formation import (
     constraint_penalty,
@@ -422,7 +423,7 @@ def _search_program(formation0, starts, scenario, keys, spec, options: dict):
     args = (arrays, jr.key_data(keys))
     program = cached_program(
         "design_search", make_fn, static, args,
-        compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS, replicated=False,
+        compiler_options=compiler_options(), replicated=False,
     )  # fmt: skip
     return program, args
 

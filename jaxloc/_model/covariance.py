@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._core.compiler import jit
 from .._core.linalg import spd_inverse
 from .._cycle.estimate import CycleCovariance, CycleEstimate
 from .._cycle.layout import first_sighting, num_steps, placement_ids
@@ -236,6 +237,12 @@ def cycle_crlb(
     present = tuple(
         None if m is None else jnp.asarray(m, bool) for m in (mutual_visible, overhead_visible)
     )
+    return _crlb(rig, truth, jnp.asarray(odometry_sigma_rel), strategy, present)
+
+
+@jit(inline=True)
+def _crlb(rig: Rig, truth: CyclePoses, odometry_sigma_rel, strategy: str, present):
+    # Compiled once per shape and strategy for eager callers; inlined into a caller's trace.
     inputs = crlb_inputs(rig, truth, odometry_sigma_rel, strategy, present)
     return covariance_at(*inputs, rig, strategy)
 

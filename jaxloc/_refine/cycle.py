@@ -21,6 +21,7 @@ import jaxlie
 import optimistix as optx
 from jaxtyping import Array
 
+from .._core.compiler import jit
 from .._core.least_squares import (
     implicit_step,
     jvp_nonzero,
@@ -493,7 +494,7 @@ def finish_refinement(refined: CycleEstimate, runner_up_chi2, gate) -> CycleEsti
     return eqx.tree_at(lambda e: e.result, refined, result)
 
 
-@eqx.filter_jit(inline=True)
+@jit(inline=True)
 def _refine_cycle_impl(observations, rig, estimate, loss, *, solver, max_steps, rtol, atol):
     refined, runner_up_chi2 = refine_solution(
         observations, rig, estimate, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol,

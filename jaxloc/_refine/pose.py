@@ -20,6 +20,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Scalar
 
 from .._cameras.models import AbstractCamera
+from .._core.compiler import jit
 from .._core.least_squares import (
     implicit_step,
     levenberg_marquardt,
@@ -222,7 +223,7 @@ def _status(result, cov_ok, pose, camera, X, use, count, nonfinite):
     return RESULTS.where(nonfinite, RESULTS.nonfinite_observation, result)
 
 
-@eqx.filter_jit
+@jit
 def _refine_pose_impl(
     T0, camera, X, uv, mask, sigma, loss_scale, *, solver, loss, max_steps, rtol, atol
 ):

@@ -25,6 +25,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from .._core.compiler import jit
 from .._cycle.layout import move_start_step, moving_robot, num_steps
 from .._cycle.observations import CycleObservations, CyclePoses, ODOMETRY_SIGMA_FLOOR
 from .._cycle.rig import ground_cameras_apply, Rig
@@ -396,6 +397,13 @@ def simulate_cycle(
     scalar, `True` iff every formation of the cycle satisfies the requirements (mark the
     trial `RESULTS.not_visible` otherwise).
     """
+    return _simulate_cycle(scenario, key)
+
+
+@jit(inline=True)
+def _simulate_cycle(scenario: Scenario, key: PRNGKeyArray):
+    # Compiled once per scenario structure for eager callers (op by op, a call took
+    # seconds); inlined into a caller's trace.
     dtype = jnp.result_type(scenario.base.dtype, scenario.side.dtype)
     k_moves, k_mutual, k_over, k_odo = jr.split(key, 4)
     frames = overhead_frames(scenario, scenario.overhead_xy, scenario.overhead_heading, dtype)

@@ -8,12 +8,12 @@ placement it saw ([`jaxloc.solve_overhead_pose`][]). Every estimate passes the g
 is called `successful`.
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
+from .._core.compiler import jit
 from .._core.poses import inverse
 from .._core.results import raise_if_failed, RESULTS
 from .._cycle.estimate import CycleEstimate, CycleStarts
@@ -225,7 +225,7 @@ def localize_cycle(
     return raise_if_failed(estimate, estimate.result, throw)
 
 
-@eqx.filter_jit(inline=True)
+@jit(inline=True)
 def _localize_cycle_impl(observations: CycleObservations, rig: Rig, method: str):
     # Compiled once per shape and method for eager callers; inlined into a caller's trace.
     (estimate,) = localize_cycle_methods(observations, rig, (method,))

@@ -27,6 +27,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array
 
+from .._core.compiler import compiler_options, jit
 from .._core.programs import cached_program, describe, Program
 from .._sim.scenario import Scenario
 from .._sim.scenario_file import scenario_to_dict
@@ -66,26 +67,6 @@ whole chunk (DESIGN §8). Chunks of ~3400 paper-scenario trials on 2 CPU devices
 3.2 / 3.3 / 3.6 s (concurrent) and 1.4 / 1.4 / 1.7 s (sequential) with steps of 16 /
 32 / 64: smaller steps wait for fewer stragglers of the refinement, larger ones
 vectorize better. A CPU setting: an accelerator wants the whole chunk in one step."""
-#: XLA options of jaxloc's large programs: a study's chunk (below) and the formation
-#: search (`jaxloc._design`). XLA:CPU's newer fusion emitters take ~25% longer
-#: to compile a cycle trial (measured on the paper's scenario, chunk of 4096: 49 s -> 37 s
-#: concurrent, 34 s -> 30 s sequential) and run it no faster (6.3 s -> 5.2 s, 4.3 s ->
-#: 4.3 s per chunk), so the classic emitters compile it. Most of the rest is LLVM
-#: (~12 of 17 s for the sequential chunk), and LLVM's -O1 instead of the default -O3
-#: compiles the concurrent chunk (3456 trials) ~4 s faster and runs it as fast (5.4-5.6 s
-#: vs 6.0 s), the sequential one ~4 s faster and 0.3 s slower per chunk (2.7 s vs 2.4 s).
-#: XLA:CPU also hands some element-wise and reduction fusions to the YNNPACK library
-#: by default; on a trial's small arrays the library's per-call overhead outweighs its
-#: kernels: with `xla_cpu_experimental_ynn_fusion_type` empty (every fusion compiled by
-#: XLA), chunks of 3392 paper-scenario trials on 2 CPU devices ran in 2.63 s instead of
-#: 3.46 s (concurrent) and 1.20 s instead of 1.44 s (sequential), and compile no slower
-#: (`benchmarks/study_programs.py --ab-ynn`). The last bits of the errors differ (another
-#: summation order); `jaxloc table1` prints the same table.
-LARGE_PROGRAM_COMPILER_OPTIONS = {
-    "xla_cpu_use_fusion_emitters": False,
-    "xla_backend_optimization_level": 1,
-    "xla_cpu_experimental_ynn_fusion_type": "",
-}
 
 
 def map_trials(trial: Callable[[Array], Any], start, chunk_size: int) -> Any:
@@ -113,7 +94,7 @@ def _chunk_trials(scenario: Scenario, seed, start, chunk_size: int, methods: tup
 
 
 #: The chunk program as a plain jitted function (benchmarks lower it directly).
-_run_chunk = eqx.filter_jit(_chunk_trials, compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS)
+_run_chunk = jit(_chunk_trials)
 
 
 def chunk_program(
@@ -150,7 +131,7 @@ def chunk_program(
     description = repr((describe(rest), str(tree), padded, static, tuple(fields)))
     args = (arrays, jax.ShapeDtypeStruct((), jnp.uint32), jax.ShapeDtypeStruct((), jnp.int32))
     return cached_program(
-        name, make_fn, description, args, compiler_options=LARGE_PROGRAM_COMPILER_OPTIONS
+        name, make_fn, description, args, compiler_options=compiler_options()
     )
 
 

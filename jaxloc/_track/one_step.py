@@ -43,6 +43,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._core.compiler import jit
 from .._core.least_squares import levenberg_marquardt, normal_equations
 from .._core.linalg import cholesky, gram, spd_inverse, unrolled_spd_inverse
 from .._core.numerics import safe_normalize
@@ -502,7 +503,7 @@ def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, c
     return FitCheck(solver, cost, chi2, dof, limit, observable, worst), result
 
 
-@eqx.filter_jit
+@jit
 def _one_step_impl(snapshot: Snapshot, rig: Rig, prior: OneStepPrior):
     dtype = snapshot.overhead.dtype
     mount = rig.mounts[0].astype(dtype)

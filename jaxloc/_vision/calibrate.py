@@ -24,7 +24,6 @@ import os
 from typing import Any
 
 import cv2
-import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
@@ -36,6 +35,7 @@ from jaxtyping import Array, Float
 
 from .._cameras.files import camera_to_dict
 from .._cameras.models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera, ZoomTable
+from .._core.compiler import jit
 from .markers import imread
 
 
@@ -417,7 +417,7 @@ def _homography_pose(bearings: np.ndarray, obj: np.ndarray) -> np.ndarray:
     return np.asarray(T.wxyz_xyz)
 
 
-@eqx.filter_jit
+@jit
 def _unproject(camera: AbstractCamera, uv: Float[Array, "n 2"]) -> Float[Array, "n 3"]:
     # Jitted once per shape: an eager `unproject` recompiles its undistortion loops.
     return camera.unproject(uv)
@@ -447,7 +447,7 @@ def _omni_residuals(params, args):
     return jax.vmap(one)(T0, deltas, uv, weight)
 
 
-@eqx.filter_jit
+@jit
 def _omni_solve(theta0, T0, obj, uv, weight, f0, image_size, skew, free, max_steps):
     args = (T0, obj, uv, weight, f0, image_size, skew, free)
     deltas0 = jnp.zeros((T0.shape[0], 6), T0.dtype)
@@ -465,7 +465,7 @@ def _omni_solve(theta0, T0, obj, uv, weight, f0, image_size, skew, free, max_ste
     return sol.value, sol.result, sol.stats["num_steps"]
 
 
-@eqx.filter_jit
+@jit
 def _omni_jacobian(params, args):
     flat0, unravel = jax.flatten_util.ravel_pytree(params)
     J = jax.jacfwd(lambda f: _omni_residuals(unravel(f), args).ravel())(flat0)

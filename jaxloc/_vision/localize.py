@@ -24,13 +24,13 @@ import dataclasses
 import os
 from typing import Any
 
-import equinox as eqx
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
 
 from .._cameras.models import OmniCamera
 from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
+from .._core.compiler import jit
 from .._core.files import atomic_write_json
 from .._core.poses import ypr_from_rotation
 from .._core.results import RESULTS, status_code, status_names
@@ -208,13 +208,13 @@ def observations_from_detections(
     )  # fmt: skip
 
 
-@eqx.filter_jit
+@jit
 def _unproject(camera, uv):
     # Jitted: an eager `unproject` recompiles its undistortion loops at every call.
     return camera.unproject(uv)
 
 
-@eqx.filter_jit
+@jit
 def _localize(observations: CycleObservations, rig: Rig):
     return localize_cycle(observations, rig, throw=False)
 

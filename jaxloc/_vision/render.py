@@ -34,7 +34,6 @@ import os
 from typing import Any
 
 import cv2
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
@@ -43,6 +42,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
 from .._cameras.models import AbstractCamera, OmniCamera
+from .._core.compiler import jit
 from .._cycle.sightings import in_body, marker_in_world, mutual_points
 from .._model.measurements import rotations
 
@@ -67,7 +67,7 @@ def numpy_rng(key: PRNGKeyArray) -> np.random.Generator:
 # Sphere silhouettes.
 
 
-@eqx.filter_jit
+@jit
 def _silhouettes(camera: AbstractCamera, centers: Float[Array, "n 3"], radius):
     """Silhouette polygons `(n, m, 2)` px, projected centres `(n, 2)`, and validity `(n,)`
     (the sphere is in front of / projectable by the camera, and the camera outside it)."""
@@ -605,7 +605,7 @@ def render_cycle(
 # Chessboards.
 
 
-@eqx.filter_jit
+@jit
 def _board_coords(camera: AbstractCamera, T_board_cam: jaxlie.SE3, pixels: Float[Array, "n 2"]):
     """Board-plane coordinates `(n, 2)` (m) hit by the rays of `pixels`, and whether the
     ray hits the board's front (z = 0 plane, ray going towards it)."""
@@ -742,7 +742,7 @@ def _polygon_area_centroid(poly: np.ndarray) -> tuple[float, np.ndarray]:
     return abs(a), np.array([cx, cy])
 
 
-@eqx.filter_jit
+@jit
 def _unproject1(camera: AbstractCamera, uv: Float[Array, "2"]) -> Float[Array, "3"]:
     return camera.unproject(uv)
 
