@@ -30,12 +30,14 @@ CASES = {
         "(lambda f: lambda: f(obs))(jax.jit(lambda o: jaxloc.localize_cycle(o, sc.rig, "
         "throw=False)))"
     ),
-    "jit(localize_cycle), options": (
+    "jit(localize_cycle) with options": (
         "(lambda f: lambda: f(obs))(jax.jit(lambda o: jaxloc.localize_cycle(o, sc.rig, "
         "throw=False), compiler_options=jaxloc.compiler_options()))"
     ),
 }
 
+#: The subprocesses run here, where no `jaxloc` folder shadows the one `PYTHONPATH` names.
+HERE = os.path.dirname(os.path.abspath(__file__))
 #: Settings that would let a case reuse another run's compilation.
 NO_CACHE = ("JAX_COMPILATION_CACHE_DIR", "JAXLOC_COMPILE_CACHE")
 
@@ -78,7 +80,7 @@ def main() -> None:
         env = {k: v for k, v in os.environ.items() if k not in NO_CACHE}
         run = subprocess.run(
             [sys.executable, "-c", SCRIPT, name, str(args.calls), CASES[name]],
-            env=env, capture_output=True, text=True, check=True,
+            env=env, capture_output=True, text=True, check=True, cwd=HERE,
         )  # fmt: skip
         results[name] = json.loads(run.stdout.strip().splitlines()[-1])
         r = results[name]

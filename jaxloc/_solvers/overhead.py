@@ -19,6 +19,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .._core.compiler import jit
 from .._core.least_squares import implicit_step, levenberg_marquardt, normal_equations
 from .._core.numerics import safe_normalize
 from .._core.poses import apply, inverse, rplus, rplus_params
@@ -207,7 +208,7 @@ def _status(nonfinite, count, any_triplet, num_valid, pose, ambiguous):
     return RESULTS.where(nonfinite, RESULTS.nonfinite_observation, result)
 
 
-@ft.partial(jax.jit, static_argnames="runner_up", inline=True)
+@jit(inline=True)
 def _robust_pose(X, bw, mask, runner_up: bool = False) -> PoseSolution:
     dtype = X.dtype
     eps = jnp.finfo(dtype).eps
