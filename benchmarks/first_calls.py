@@ -3,12 +3,13 @@
     python benchmarks/first_calls.py [--only NAME,...] [--calls 20] [--out FILE]
 
 Each case runs in a fresh Python process without a persistent compilation cache (so the
-first call traces and compiles, as on a fresh machine), on one simulated cycle of the paper's
-sequential scenario (`key(0)`; its simulation is compiled before the clock starts,
-except for the `simulate_cycle` case). Prints, per case, the first call's seconds and
-the median of `--calls` later calls (each `block_until_ready`). Cases: the eager entry
-points as a user calls them (jaxloc compiles them with `jaxloc.compiler_options()`),
-and `localize_cycle` inside the user's own `jax.jit`, without and with those options.
+first call traces and compiles, as on a fresh machine), on one simulated cycle of the
+paper's sequential scenario (`key(0)`; its simulation, and the estimate or the 2-cycle
+track a case needs, are computed before the clock starts, except for the
+`simulate_cycle` case). Prints, per case, the first call's seconds and the median of
+`--calls` later calls (each `block_until_ready`). Cases: the eager entry points as a
+user calls them (jaxloc compiles them with `jaxloc.compiler_options()`), and
+`localize_cycle` inside the user's own `jax.jit`, without and with those options.
 """
 
 import argparse
@@ -24,6 +25,10 @@ CASES = {
     "localize_cycle": "lambda: jaxloc.localize_cycle(obs, sc.rig, throw=False)",
     "refine_cycle": "lambda: jaxloc.refine_cycle(obs, sc.rig, est, throw=False)",
     "cycle_crlb": "lambda: jaxloc.cycle_crlb(sc.rig, truth.poses, odometry_sigma_rel=0.01)",
+    "cycle_covariance": "lambda: jaxloc.cycle_covariance(obs, sc.rig, est)",
+    "run_trial": "lambda: jaxloc.run_trial(sc, jr.key(1))",
+    "track_cycles (2 cycles)": "lambda: jaxloc.track_cycles(track_obs, sc.rig)",
+    "run_track_trial (2 cycles)": "lambda: jaxloc.run_track_trial(track, jr.key(1), 2)",
     "p3p": "lambda: jaxloc.p3p(X[:3], b[:3])",
     "solve_overhead_pose": "lambda: jaxloc.solve_overhead_pose(X, b, throw=False)",
     "jit(localize_cycle)": (
@@ -53,8 +58,11 @@ SCRIPT = textwrap.dedent(
         truth, obs, _ = jaxloc.simulate_cycle(sc, jr.key(0))
         X = truth.poses.T_world_body.wxyz_xyz[:, :, 4:].reshape(-1, 3)  # every step's
         b = obs.overhead.reshape(-1, 3)  # robots, and the overhead camera's bearings
-        if case == "refine_cycle":
+        if case in ("refine_cycle", "cycle_covariance"):
             est = jaxloc.localize_cycle(obs, sc.rig, throw=False)
+        track = jaxloc.TrackScenario(sc)
+        if case.startswith("track_cycles"):
+            track_obs = jaxloc.simulate_track(track, jr.key(0), 2)[1]
     f = eval(sys.argv[3])
     t = time.perf_counter()
     jax.block_until_ready(f())

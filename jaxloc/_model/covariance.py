@@ -174,6 +174,7 @@ def crlb_inputs(
     return T_place, T_over, data
 
 
+@jit(inline=True)
 def cycle_covariance(
     observations: CycleObservations, rig: Rig, estimate: CycleEstimate
 ) -> CycleCovariance:

@@ -7,6 +7,7 @@ import jax.random as jr
 import jaxlie
 from jaxtyping import Array, Float, Int, PRNGKeyArray
 
+from .._core.compiler import jit
 from .._core.linalg import adjugate3, psd_cholesky3
 from .._core.numerics import safe_norm
 from .._core.poses import compose, inverse, rotation_error, ypr_from_rotation
@@ -199,6 +200,7 @@ def _bound_samples(key, covariance: Float[Array, "4 3 3"]) -> Float[Array, "4"]:
     return safe_norm(jnp.einsum("cij,cj->ci", L, z))
 
 
+@jit(inline=True)
 def run_trial(
     scenario: Scenario, key: PRNGKeyArray, methods: tuple[str, ...] = METHODS
 ) -> TrialErrors:

@@ -15,6 +15,7 @@ import jax.random as jr
 import jaxlie
 from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
+from .._core.compiler import jit
 from .._core.numerics import safe_norm
 from .._core.poses import compose, inverse, rplus
 from .._cycle.observations import CycleObservations
@@ -150,6 +151,7 @@ def _climber_odometry(track: TrackScenario, key, T_prev: jaxlie.SE3, T_next: jax
     return rplus(Z, noise).wxyz_xyz, sigma
 
 
+@jit(inline=True)
 def simulate_track(
     track: TrackScenario, key: PRNGKeyArray, cycles: int
 ) -> tuple[TrackTruth, TrackObservations, Bool[Array, " K"]]:

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from .._core.compiler import jit
 from .._core.results import RESULTS, status_code
 from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
@@ -78,6 +79,7 @@ def _first_failure(previous, code):
     return jnp.where(previous == 0, code, previous)
 
 
+@jit(inline=True)
 def track_cycles(
     observations: TrackObservations, rig: Rig, *, window: int = DEFAULT_WINDOW
 ) -> TrackEstimates:

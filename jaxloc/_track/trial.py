@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Bool, Float, Int, PRNGKeyArray
 
+from .._core.compiler import jit
 from .._core.numerics import safe_norm
 from .._core.poses import compose, inverse, rotation_error
 from .._core.results import RESULTS, status_code
@@ -159,6 +160,7 @@ def _trace(P):
     return jnp.trace(P, axis1=-2, axis2=-1)
 
 
+@jit(inline=True)
 def run_track_trial(
     track: TrackScenario, key: PRNGKeyArray, cycles: int, window: int = DEFAULT_WINDOW
 ) -> TrackErrors:
