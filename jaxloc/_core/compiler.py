@@ -29,9 +29,10 @@ import jax
 #: instead of 3.46 s (concurrent) and 1.20 s instead of 1.44 s (sequential), and compile
 #: no slower (`benchmarks/study_programs.py --ab-ynn`). The last bits of the errors
 #: differ (another summation order); `jaxloc table1` prints the same table. On
-#: `jit(vmap(localize_cycle))` (sequential, batch 1024) they take compilation from 26.3
-#: to 12.9 CPU-s (15.4 to 8.7 s wall) and the run from 787 to 750 us per cycle
-#: (`benchmarks/localize_kernels.py --options`).
+#: `jit(vmap(localize_cycle))` (sequential, batch 1024) they take lowering and compiling
+#: from 32.0 to 19.2 CPU-s (20.8 to 14.7 s wall; 985 to 877 kernels), and the run from 767
+#: to 763 us per cycle (`benchmarks/localize_kernels.py` without and with `--options`,
+#: idle, at c8e4f73).
 CPU_OPTIONS: dict[str, Any] = {
     "xla_cpu_use_fusion_emitters": False,
     "xla_backend_optimization_level": 1,
