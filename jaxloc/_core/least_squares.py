@@ -25,7 +25,7 @@ import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from .linalg import cholesky, cholesky_solve, gram, spd_inverse, unrolled_cholesky_solve
+from .linalg import cholesky, cholesky_solve, gram, spd_inverse, gauss_jordan_solve
 
 
 #: Largest number of unknowns solved by the unrolled Cholesky; larger systems use the
@@ -41,7 +41,7 @@ def solve_spd(
     """Solve `H x = g` for SPD `H`, LAPACK-free: unrolled Cholesky for a few unknowns, a
     `fori_loop` one beyond `UNROLLED_MAX`. Returns `(x, ok)`; `x` is 0 where not `ok`."""
     if H.shape[0] <= UNROLLED_MAX:
-        x, ok = unrolled_cholesky_solve(H, g)
+        x, ok = gauss_jordan_solve(H, g)
     else:
         x = cholesky_solve(cholesky(H), g)
         ok = jnp.array(True)
