@@ -30,6 +30,11 @@ CASES = {
     "track_cycles (2 cycles)": "lambda: jaxloc.track_cycles(track_obs, sc.rig)",
     "run_track_trial (2 cycles)": "lambda: jaxloc.run_track_trial(track, jr.key(1), 2)",
     "p3p": "lambda: jaxloc.p3p(X[:3], b[:3])",
+    "mutual_localization": "lambda: jaxloc.mutual_localization(obs.mutual[0], throw=False)",
+    "localize_one_step": (
+        "(lambda s, p: lambda: jaxloc.localize_one_step(s, sc.rig, p, throw=False))("
+        "jaxloc.Snapshot.of(obs, 0), jaxloc.OneStepPrior.height_prior(3.0, 0.3, 0.1))"
+    ),
     "solve_overhead_pose": "lambda: jaxloc.solve_overhead_pose(X, b, throw=False)",
     "jit(localize_cycle)": (
         "(lambda f: lambda: f(obs))(jax.jit(lambda o: jaxloc.localize_cycle(o, sc.rig, "

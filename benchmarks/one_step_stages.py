@@ -1,15 +1,17 @@
 """Where a single one-step update's latency goes (issue 21's <= 100 us target).
 
-    python benchmarks/one_step_stages.py [--calls 1000]
+    python benchmarks/one_step_stages.py [--calls 1000] [--rounds 3]
 
 One snapshot of the paper's scenario with a 20 cm / 5 deg pose prior and the perimeter
 (as `benchmarks/track_targets.py --only one_step` draws them, seed 1). Each stage of
 `jaxloc._track.one_step` is compiled ahead of time as its own program, cumulatively
 (formation; + P3P roots and their prior misfits; + the MAP refinement), beside the whole
 update, `mutual_localization` and `p3p` alone and an empty program (the floor of one
-call); prints the median latency of `--calls` calls of each and the fused kernels and
-while loops of the whole update's compiled program. On XLA:CPU a call costs about a
-microsecond per kernel executed: the count of kernels, not arithmetic, sets the latency.
+call), all with `jaxloc.compiler_options()` (the options of jaxloc's own entry points),
+the team's `Rig` a constant of the program; then the whole update with the `Rig` as an
+argument, and the public `localize_one_step` called eagerly (its jit's dispatch
+included). Prints the best of `--rounds` medians of `--calls` calls of each, and the
+fused kernels and while loops of the whole update's compiled program.
 """
 
 import argparse
@@ -25,6 +27,7 @@ import jax.numpy as jnp  # noqa: E402
 import jax.random as jr  # noqa: E402
 import jaxlie  # noqa: E402
 import numpy as np  # noqa: E402
+from jaxloc._core.compiler import compiler_options  # noqa: E402
 from jaxloc._core.poses import rplus  # noqa: E402
 from jaxloc._sim.scenario import Scenario  # noqa: E402
 from jaxloc._sim.simulate import simulate_cycle  # noqa: E402
@@ -49,20 +52,27 @@ def snapshot_and_prior(scenario: Scenario, key):
     return one_step.Snapshot.of(obs, 0), prior
 
 
-def median_latency_us(f, args, calls: int) -> float:
-    compiled = jax.jit(f).lower(*args).compile()
-    jax.block_until_ready(compiled(*args))
-    times = []
-    for _ in range(calls):
-        t = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - t)
-    return 1e6 * float(np.median(times))
+def median_latency_us(f, args, calls: int, rounds: int, compiled: bool = True) -> float:
+    """The best of `rounds` medians of `calls` calls of `f` (compiled ahead of time with
+    jaxloc's options when `compiled`, else called as it is)."""
+    if compiled:
+        f = jax.jit(f, compiler_options=compiler_options()).lower(*args).compile()
+    jax.block_until_ready(f(*args))
+    medians = []
+    for _ in range(rounds):
+        times = []
+        for _ in range(calls):
+            t = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            times.append(time.perf_counter() - t)
+        medians.append(float(np.median(times)))
+    return 1e6 * min(medians)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=1000)
+    parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()
     scenario = Scenario.paper()
     rig = scenario.rig
@@ -93,10 +103,16 @@ def main() -> None:
                                       (snap,)),  # fmt: skip
         "p3p alone": (p3p, (jnp.eye(3), jnp.eye(3))),
         "empty program (x + 1)": (lambda x: x + 1, (jnp.ones(3),)),
+        "whole update, Rig an argument": (
+            lambda s, r, p: one_step.localize_one_step(s, r, p, throw=False), (snap, rig, prior)),
     }
     for name, (f, f_args) in stages.items():
-        print(f"{name:<34}{median_latency_us(f, f_args, args.calls):8.0f} us")
-    text = jax.jit(whole).lower(snap, prior).compile().as_text()
+        print(f"{name:<34}{median_latency_us(f, f_args, args.calls, args.rounds):8.0f} us")
+    eager = median_latency_us(stages["whole update, Rig an argument"][0], (snap, rig, prior),
+                              args.calls, args.rounds, compiled=False)  # fmt: skip
+    print(f"{'localize_one_step called eagerly':<34}{eager:8.0f} us")
+    options = compiler_options()
+    text = jax.jit(whole, compiler_options=options).lower(snap, prior).compile().as_text()
     print(f"whole update: {text.count('fusion(')} fused kernels, "
           f"{text.count(' while(')} while loops")  # fmt: skip
 

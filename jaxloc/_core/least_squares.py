@@ -25,7 +25,7 @@ import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Bool, Float, Int, PyTree
 
-from .linalg import cholesky, cholesky_solve, gram, spd_inverse, gauss_jordan_solve
+from .linalg import cholesky, cholesky_solve, gauss_jordan_solve, gram, spd_inverse
 
 
 #: Largest number of unknowns solved by the unrolled Cholesky; larger systems use the

@@ -166,8 +166,8 @@ def row_equilibrated_gram(J: Float[Array, "m n"]) -> Float[Array, "n n"]:
 
 
 def gauss_jordan_solve(
-    H: Float[Array, "n n"], B: Float[Array, "n *k"]
-) -> tuple[Float[Array, "n *k"], Bool[Array, ""]]:
+    H: Float[Array, "n n"], B: Float[Array, "n ..."]
+) -> tuple[Float[Array, "n ..."], Bool[Array, ""]]:
     """Solve `H X = B` for a small SPD `H` (`B` of shape `(n,)` or `(n, k)`) by Gauss--Jordan
     elimination without pivoting in a `fori_loop` over the `n` pivots. Each step is one
     element-wise update of the augmented matrix `[H | B]` (one fused kernel), so the

@@ -31,6 +31,7 @@ from .._cameras.presets import (
     R_BODY_OVERHEAD,
     R_BODY_PTZ,
 )
+from .._core.poses import quaternion_matrix
 
 
 #: Pixel noise models: `"paper"`, an offset of radius ~ N(0, sigma) in a uniformly random
@@ -181,7 +182,7 @@ class Rig(eqx.Module):
 
     def mount_rotations(self) -> Float[Array, "4 3 3"]:
         """`R_body_camera` of every camera as matrices, shape `(4, 3, 3)`."""
-        return jax.vmap(lambda q: jaxlie.SO3(q).as_matrix())(self.mounts[:, :4])
+        return quaternion_matrix(self.mounts[:, :4])
 
     def mount_translations(self) -> Float[Array, "4 3"]:
         """Each camera centre in its robot's body frame (m), shape `(4, 3)`."""

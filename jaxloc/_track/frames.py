@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._core.numerics import safe_norm, safe_normalize
-from .._core.poses import compose, inverse
+from .._core.poses import compose, inverse, quaternion_matrix
 from .._cycle.layout import placement_ids
 
 
@@ -35,7 +35,7 @@ def transport(T: Float[Array, "7"], cov: Float[Array, "6 6"]) -> Float[Array, "6
 def position_covariance(T: Float[Array, "7"], cov: Float[Array, "6 6"]) -> Float[Array, "3 3"]:
     """World-frame position covariance (m^2) of a pose `T` with right-perturbation
     covariance `cov`: `R cov_vv R^T`."""
-    R = jaxlie.SO3(T[:4]).as_matrix().astype(T.dtype)
+    R = quaternion_matrix(T[:4])
     return R @ cov[:3, :3] @ R.T
 
 

@@ -47,7 +47,7 @@ from .._core.compiler import jit
 from .._core.least_squares import levenberg_marquardt, normal_equations
 from .._core.linalg import cholesky, gram, spd_inverse, unrolled_spd_inverse
 from .._core.numerics import safe_normalize
-from .._core.poses import compose, identity_params, inverse, rplus
+from .._core.poses import compose, identity_params, inverse, quaternion_matrix, rplus
 from .._core.results import raise_if_failed, RESULTS
 from .._cycle.estimate import FitCheck
 from .._cycle.layout import placement_ids
@@ -231,7 +231,7 @@ class OneStepEstimate(eqx.Module):
     @property
     def position_covariance(self) -> Float[Array, "3 3"]:
         """World-frame covariance (m^2) of the climbing robot's body position."""
-        R = jaxlie.SO3(self.T_world_climber[:4]).as_matrix().astype(self.covariance.dtype)
+        R = quaternion_matrix(self.T_world_climber[:4]).astype(self.covariance.dtype)
         return R @ self.covariance[:3, :3] @ R.T
 
 

@@ -17,7 +17,7 @@ from jaxtyping import Array, Bool, Float, PRNGKeyArray
 
 from .._core.compiler import jit
 from .._core.numerics import safe_norm
-from .._core.poses import compose, inverse, rplus
+from .._core.poses import compose, inverse, quaternion_matrix, rplus
 from .._cycle.observations import CycleObservations
 from .._cycle.sightings import in_body, marker_in_world
 from .._sim.simulate import CycleTruth, overhead_frames, simulate_cycle, xy_sides
@@ -228,5 +228,5 @@ def simulate_track(
 
 def markers_env_of_poses(track: TrackScenario, T_env_body: Float[Array, "3 7"]):
     """The ground robots' markers in `E` from their body poses `(3, 7)`."""
-    R = jax.vmap(lambda q: jaxlie.SO3(q).as_matrix())(T_env_body[:, :4]).astype(T_env_body.dtype)
+    R = quaternion_matrix(T_env_body[:, :4])
     return marker_in_world(R, T_env_body[:, 4:], track.rig.markers[1:].astype(T_env_body.dtype))
