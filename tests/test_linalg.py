@@ -152,14 +152,14 @@ def test_gauss_jordan_solve_matches_lapack(dtype, rhs):
 
 def test_gauss_jordan_solve_flags_what_is_not_positive_definite():
     """An indefinite, singular or NaN matrix: `ok` False and a finite (meaningless)
-    solution, never a NaN that would leak into a batch; `unrolled_spd_inverse` gives 0."""
-    from jaxloc._core.linalg import gauss_jordan_solve, unrolled_spd_inverse
+    solution, never a NaN that would leak into a batch; `small_spd_inverse` gives 0."""
+    from jaxloc._core.linalg import gauss_jordan_solve, small_spd_inverse
 
     b = jnp.ones(3)
     for H in (np.diag([1.0, -1.0, 2.0]), np.ones((3, 3)), np.zeros((3, 3))):
         X, ok = gauss_jordan_solve(jnp.asarray(H), b)
         assert not bool(ok) and np.all(np.isfinite(np.asarray(X)))
-        inverse, ok = unrolled_spd_inverse(jnp.asarray(H))
+        inverse, ok = small_spd_inverse(jnp.asarray(H))
         assert not bool(ok) and np.all(np.asarray(inverse) == 0)
     _, ok = gauss_jordan_solve(jnp.full((3, 3), jnp.nan), b)
     assert not bool(ok)

@@ -28,9 +28,11 @@ from jaxtyping import Array, Bool, Float, Int, PyTree
 from .linalg import cholesky, cholesky_solve, gauss_jordan_solve, gram, spd_inverse
 
 
-#: Largest number of unknowns solved by the unrolled Cholesky; larger systems use the
-#: `fori_loop` one (an unrolled 40x40 factorization is ~10^4 traced operations).
-UNROLLED_MAX = 8
+#: Largest number of unknowns solved by Gauss--Jordan elimination; larger systems (a
+#: cycle's 30-42 unknowns) use the `fori_loop` Cholesky, which does a third of the work:
+#: batched, the elimination's passes over the whole augmented matrix cost more than its
+#: fewer kernels save.
+SMALL_SYSTEM_MAX = 8
 #: Damping of the first step and its clip range.
 _LAM_MIN, _LAM_MAX = 1e-9, 1e12
 
@@ -38,9 +40,10 @@ _LAM_MIN, _LAM_MAX = 1e-9, 1e12
 def solve_spd(
     H: Float[Array, "n n"], g: Float[Array, " n"]
 ) -> tuple[Float[Array, " n"], Bool[Array, ""]]:
-    """Solve `H x = g` for SPD `H`, LAPACK-free: unrolled Cholesky for a few unknowns, a
-    `fori_loop` one beyond `UNROLLED_MAX`. Returns `(x, ok)`; `x` is 0 where not `ok`."""
-    if H.shape[0] <= UNROLLED_MAX:
+    """Solve `H x = g` for SPD `H`, LAPACK-free: Gauss--Jordan elimination for a few
+    unknowns, a `fori_loop` Cholesky beyond `SMALL_SYSTEM_MAX`. Returns `(x, ok)`; `x` is 0
+    where not `ok`."""
+    if H.shape[0] <= SMALL_SYSTEM_MAX:
         x, ok = gauss_jordan_solve(H, g)
     else:
         x = cholesky_solve(cholesky(H), g)

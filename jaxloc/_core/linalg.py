@@ -75,7 +75,8 @@ def psd_cholesky3(P: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
 
 
 # --------------------------------------------------------------------------------------
-# Cholesky: a loop over columns for any size, and an unrolled one for a few unknowns.
+# SPD systems: Cholesky in a loop over columns for any size, Gauss--Jordan for a few
+# unknowns.
 
 
 def cholesky(A: Float[Array, "n n"]) -> Float[Array, "n n"]:
@@ -196,7 +197,7 @@ def gauss_jordan_solve(
     return X.reshape(B.shape), ok
 
 
-def unrolled_spd_inverse(H: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Bool[Array, ""]]:
+def small_spd_inverse(H: Float[Array, "n n"]) -> tuple[Float[Array, "n n"], Bool[Array, ""]]:
     """Inverse of a small SPD matrix by [`gauss_jordan_solve`][]; `(inverse, ok)`, 0 where
     not positive definite."""
     inv, ok = gauss_jordan_solve(H, jnp.eye(H.shape[0], dtype=H.dtype))

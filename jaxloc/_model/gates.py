@@ -52,8 +52,8 @@ from .._core.least_squares import solve_spd
 from .._core.linalg import (
     row_equilibrated_gram,
     scaled_inverse_trace,
+    small_spd_inverse,
     spd_inverse,
-    unrolled_spd_inverse,
 )
 from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_placements
@@ -93,9 +93,9 @@ SIGHTING_LIMIT = {"gaussian": 13.8155, "paper": 21.6551}
 #: with float64's margin over rounding would reject clean cycles there); see
 #: [`min_scaled_eigenvalue`][].
 MIN_SCALED_EIGENVALUE = 1e-10
-#: Largest information matrix [`nonsingular_information`][] inverts by an unrolled
-#: Cholesky (the one-step update's 7 x 7; a cycle's 30-42 unknowns use loops).
-_UNROLLED_INVERSE_SIZE = 8
+#: Largest information matrix [`nonsingular_information`][] inverts by Gauss--Jordan
+#: elimination (the one-step update's 7 x 7; a cycle's 30-42 unknowns use a Cholesky).
+_SMALL_INVERSE_SIZE = 8
 #: Largest position bound (RMSE, m) of an end-of-cycle pose, relative to the formation's
 #: size, for the pose to count as observable: a pose whose uncertainty is as large as the
 #: formation is not known. The paper's formation (size ~0.9 m) has bounds of 1-15 cm
@@ -221,7 +221,7 @@ def nonsingular_information(J: Float[Array, "m n"]) -> Array:
     of a free rotation. The one observability test of every estimate's information
     (closed forms, refinements, the one-step update); LAPACK-free."""
     G = row_equilibrated_gram(J)
-    invert = unrolled_spd_inverse if G.shape[0] <= _UNROLLED_INVERSE_SIZE else spd_inverse
+    invert = small_spd_inverse if G.shape[0] <= _SMALL_INVERSE_SIZE else spd_inverse
     return _beyond_rounding(G, *invert(G))
 
 

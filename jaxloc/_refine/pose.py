@@ -5,7 +5,7 @@ the image over the SE(3) tangent around the current pose (`T = T0 exp(delta)`,
 `delta = (v, omega)`, jaxlie's right perturbation `jaxlie.manifold.rplus`). Default
 solver: jaxloc's least-squares kernel (`jaxloc._core.least_squares`) with the chain-rule
 Jacobian of the residuals (camera projection Jacobian times `dq/d delta = R [I, -[X]x]`),
-the 6x6 normal equations as element-wise sums and an unrolled Cholesky: no LAPACK, no
+the 6x6 normal equations as element-wise sums and Gauss--Jordan elimination: no LAPACK, no
 batched `dot` (DESIGN §8). Gradients through it by the implicit function theorem; the
 optimistix solvers (`"optx-lm"`, `"optx-gn"`) use optimistix's implicit adjoint.
 """
@@ -27,7 +27,7 @@ from .._core.least_squares import (
     normal_equations,
     optx_solver,
 )
-from .._core.linalg import gram, unrolled_spd_inverse
+from .._core.linalg import gram, small_spd_inverse
 from .._core.numerics import safe_sqrt
 from .._core.poses import apply, inverse, rplus, rplus_params
 from .._core.results import raise_if_failed, RESULTS
@@ -208,7 +208,7 @@ def _covariance(pose, camera, X, uv, weight, c):
     model, no robust weights): `(J^T J)^-1`, J the chain-rule Jacobian of the
     sigma-whitened residuals; and whether `J^T J` was invertible."""
     _, J = _residuals_and_jacobian(pose, camera, X, uv, weight, c, None)
-    return unrolled_spd_inverse(gram(J.reshape(-1, 6)))
+    return small_spd_inverse(gram(J.reshape(-1, 6)))
 
 
 def _status(result, cov_ok, pose, camera, X, use, count, nonfinite):
@@ -290,11 +290,11 @@ def refine_overhead_pose(
         least-squares cost. For the paper's noise model (radius ~ N(0, s), uniform
         direction) it is `s / sqrt(2)`. Keyword only (as are all below).
     - `solver`: `"lm"` (default): jaxloc's Levenberg--Marquardt, re-linearized at the
-        current pose with the chain-rule Jacobian, element-wise 6x6 normal equations and
-        Cholesky (the fast path under `vmap`; see also `jaxloc._overhead.map_problems`);
-        converged when a step is below `atol + rtol * |t|_inf`, then one last
-        Gauss--Newton step polishes to rounding. `"gn"`: the same loop undamped
-        (Gauss--Newton). `"optx-lm"` / `"optx-gn"`: `optx.LevenbergMarquardt` /
+        current pose with the chain-rule Jacobian, element-wise 6x6 normal equations
+        and Gauss--Jordan elimination (the fast path under `vmap`; see also
+        `jaxloc._overhead.map_problems`); converged when a step is below `atol + rtol *
+        |t|_inf`, then one last Gauss--Newton step polishes to rounding. `"gn"`: the same
+        loop undamped (Gauss--Newton). `"optx-lm"` / `"optx-gn"`: `optx.LevenbergMarquardt` /
         `optx.GaussNewton` on the same residuals. All reach the same minimum.
     - `loss`: `None` (least squares), `"huber"` or `"cauchy"`.
     - `loss_scale`: the robust loss's threshold `c` in units of `sigma`; default 1.345 for

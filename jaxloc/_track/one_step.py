@@ -45,7 +45,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._core.compiler import jit
 from .._core.least_squares import levenberg_marquardt, normal_equations
-from .._core.linalg import cholesky, gram, spd_inverse, unrolled_spd_inverse
+from .._core.linalg import cholesky, gram, small_spd_inverse, spd_inverse
 from .._core.numerics import safe_normalize
 from .._core.poses import compose, identity_params, inverse, quaternion_matrix, rplus
 from .._core.results import raise_if_failed, RESULTS
@@ -158,7 +158,7 @@ class OneStepPrior(eqx.Module):
                 "`OneStepPrior.pose_prior` needs `pose` of shape (7,) (wxyz_xyz) and "
                 f"`covariance` of shape (6, 6); got {pose.shape} and {covariance.shape}."
             )
-        info, _ = unrolled_spd_inverse(0.5 * (covariance + covariance.T))
+        info, _ = small_spd_inverse(0.5 * (covariance + covariance.T))
         S = sqrt_information(info)
         return eqx.tree_at(lambda p: (p.pose, p.pose_sqrt_information), cls.none(pose.dtype),
                            (pose, S))  # fmt: skip
@@ -451,7 +451,7 @@ def _refine_root(snapshot: Snapshot, rig: Rig, prior: OneStepPrior, roots: _Root
         final_gauss_newton=True,
     )  # fmt: skip
     _, H, g = out.normal  # before the final Gauss--Newton step
-    cov, cov_ok = unrolled_spd_inverse(H)
+    cov, cov_ok = small_spd_inverse(H)
     r, J = _model(out.x, prior, pb, camera)
     cov_ok = cov_ok & nonsingular_information(J)
     step = jnp.where(cov_ok & start_ok, -cov @ g, 0.0)
