@@ -1,12 +1,13 @@
 """Where `jit(vmap(localize_cycle))`'s fused kernels come from, and what it costs (issue 19).
 
     python benchmarks/localize_kernels.py [--strategy sequential] [--batch 1024] [--top 30]
-                                          [--options]
+                                          [--options] [--map-batch N]
 
 Compiles `jax.jit(jax.vmap(lambda o: jaxloc.localize_cycle(o, rig, throw=False)))` on
 `--batch` simulated cycles of the paper's scenario (`split(key(0), batch)`) in a fresh
 cache (with `--options`, under `compiler_options=jaxloc.compiler_options()`, the XLA
-options jaxloc's own entry points and studies compile with), then prints: the fused
+options jaxloc's own entry points and studies compile with; with `--map-batch N`, as
+`jax.lax.map(..., batch_size=N)` instead of one `vmap`), then prints: the fused
 kernels of the compiled program, the CPU and wall seconds of lowering and compiling, the
 run time per problem (best of 3 calls), the share of `successful` cycles and C's mean
 position (to compare two versions of the code: run it with `PYTHONPATH` pointing at a
@@ -46,11 +47,17 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=1024)
     parser.add_argument("--top", type=int, default=30)
     parser.add_argument("--options", action="store_true")
+    parser.add_argument("--map-batch", type=int, default=0, metavar="N",
+                        help="walk the batch in jax.lax.map steps of N vmapped cycles")  # fmt: skip
     args = parser.parse_args()
     scenario = jaxloc.Scenario.paper(args.strategy)
     keys = jr.split(jr.key(0), args.batch)
     obs = jax.jit(jax.vmap(lambda k: jaxloc.simulate_cycle(scenario, k)[1]))(keys)
-    fn = jax.vmap(lambda o: jaxloc.localize_cycle(o, scenario.rig, throw=False))
+    one = lambda o: jaxloc.localize_cycle(o, scenario.rig, throw=False)  # noqa: E731
+    if args.map_batch:
+        fn = lambda o: jax.lax.map(one, o, batch_size=args.map_batch)  # noqa: E731
+    else:
+        fn = jax.vmap(one)
     c0, t0 = _cpu(), time.perf_counter()
     options = jaxloc.compiler_options() if args.options else None
     compiled = jax.jit(fn, compiler_options=options).lower(obs).compile()
@@ -64,8 +71,9 @@ def main() -> None:
                if line.startswith("  %") and " fusion(" in line]  # fmt: skip
     ok = np.asarray(out.result._value) == 0
     mean_c = float(jnp.mean(out.poses.T_world_overhead.wxyz_xyz[:, 4:]))
-    print(f"{args.strategy}, batch {args.batch}, options {options}: {len(fusions)} fused "
-          f"kernels; lower+compile "
+    layout = f"lax.map steps of {args.map_batch}" if args.map_batch else "vmap"
+    print(f"{args.strategy}, batch {args.batch} ({layout}), options {options}: "
+          f"{len(fusions)} fused kernels; lower+compile "
           f"{cpu:.1f} CPU-s ({wall:.1f} s wall); {best / args.batch * 1e6:.0f} us per problem; "
           f"successful {ok.mean():.4f}; mean of C's coordinates {mean_c:.9f}")  # fmt: skip
     paths = collections.Counter()
