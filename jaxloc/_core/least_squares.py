@@ -29,9 +29,9 @@ from .linalg import cholesky, cholesky_solve, gauss_jordan_solve, gram, spd_inve
 
 
 #: Largest number of unknowns solved by Gauss--Jordan elimination; larger systems (a
-#: cycle's 30-42 unknowns) use the `fori_loop` Cholesky, which does a third of the work:
-#: batched, the elimination's passes over the whole augmented matrix cost more than its
-#: fewer kernels save.
+#: cycle's 30-42 unknowns) use the `fori_loop` Cholesky: at that size, batched, the
+#: elimination's update of the whole augmented matrix at every pivot ran several times
+#: slower than the Cholesky loop (session 25's measurements, in the issue notes).
 SMALL_SYSTEM_MAX = 8
 #: Damping of the first step and its clip range.
 _LAM_MIN, _LAM_MAX = 1e-9, 1e12

@@ -177,7 +177,8 @@ def gauss_jordan_solve(
     pivots are the squares of the Cholesky factor's diagonal: elimination is as stable as
     Cholesky on SPD input, and every pivot is positive exactly when `H` is positive
     definite. Returns `(X, ok)`, `ok` False when a pivot is not positive (then `X` is
-    meaningless but finite)."""
+    meaningless, and finite where `H` and `B` are: a non-positive pivot is not divided
+    by)."""
     n = H.shape[0]
     M = jnp.concatenate([H, B.reshape(n, -1).astype(H.dtype)], axis=1)
     rows = jnp.arange(n)[:, None]
