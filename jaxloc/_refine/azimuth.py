@@ -51,7 +51,7 @@ def azimuth_starts(
     (`wxyz_xyz`, world frame `W`, metres), for the first stand-in bearing `[k, a, b]` of
     `stand_in` (`c` the third robot): step `k`'s formation turned about the line from
     robot `a` to robot `c` by `2 pi m / count`, with the overhead camera `T_over` (`m = 1
-    .. count - 1`) and with it flipped about the floor of the turned placements
+    .. count - 1`) and with it flipped about the floor of the placements
     ([`flip_start`][jaxloc._model.mirrors.flip_start]; `m = 0 .. count - 1`). The closed
     form's overhead camera and scales were fitted to the stand-in formation: measured on
     the concurrent strategy, the turns alone miss the true minimum where that camera
@@ -82,12 +82,12 @@ def azimuth_starts(
         return jnp.where(turns[:, None], moved, T_place)
 
     T_turned = jax.vmap(turned)(angles)
-    T_flipped, flip_defined = jax.vmap(lambda T: flip_start(T, T_over))(T_turned)
-    T_flipped = T_flipped.astype(dtype)
+    flipped, flip_defined = flip_start(T_place, T_over)
     finite = jnp.all(jnp.isfinite(T_place)) & jnp.all(jnp.isfinite(T_over))
     active = jnp.any(stand_in) & jnp.any(turns) & finite
     return (
         jnp.concatenate([T_turned[1:], T_turned]),
-        jnp.concatenate([jnp.broadcast_to(T_over, (count - 1, 7)), T_flipped]),
-        jnp.concatenate([jnp.full(count - 1, active), active & flip_defined]),
+        jnp.concatenate([jnp.broadcast_to(T_over, (count - 1, 7)),
+                         jnp.broadcast_to(flipped.astype(dtype), (count, 7))]),
+        jnp.concatenate([jnp.full(count - 1, active), jnp.full(count, active & flip_defined)]),
     )

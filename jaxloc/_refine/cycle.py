@@ -164,36 +164,41 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, los
     starts of a stand-in bearing begin far from every minimum, and measured, the lowest
     cost after a few steps often led to the wrong one.
 
-    The phases are jobs of one `lax.scan` (one per start, then the last one) so that the
-    kernel and the model are traced and compiled once. Returns `(T_place, T_over,
-    num_steps, converged, picked, runner_up_chi2)`: the solution, the start it came from
-    (0 = the estimate's own poses), and the cost of another converged minimum distinct
-    from it (some robot placement or the overhead camera more than `DISTINCT_MINIMUM`
-    away; `inf` if none)."""
+    The phases are jobs of one `lax.while_loop` (one per active start, then the last one)
+    so that the kernel and the model are traced and compiled once, and a batch pays only
+    for the starts its problems have (the azimuth starts exist only with a stand-in).
+    Returns `(T_place, T_over, num_steps, converged, picked, runner_up_chi2)`: the
+    solution, the start it came from (0 = the estimate's own poses), and the cost of
+    another converged minimum distinct from it (some robot placement or the overhead
+    camera more than `DISTINCT_MINIMUM` away; `inf` if none)."""
     start_place, start_over, lanes = starts
     lanes = lanes & active
     dtype = start_place.dtype
     n_lanes = lanes.shape[0]
     n_first = min(max_steps, _MULTI_START_STEPS)
+    order = jnp.argsort(~lanes, stable=True)  # the active starts first
+    n_active = jnp.sum(lanes)
+    first_budget = jnp.where(to_convergence, max_steps, n_first)
 
     def masked_chi2(chi2):
         return jnp.where(lanes & jnp.isfinite(chi2), chi2, jnp.inf)
 
-    def job(slots, j):
-        T_place_j, T_over_j, steps_j, converged_j, chi2_j = slots
-        last = j == n_lanes
+    def job(carry):
+        j, (T_place_j, T_over_j, steps_j, converged_j, chi2_j) = carry
+        last = j == n_active
         pick = jnp.argmin(masked_chi2(chi2_j[:n_lanes]))
-        lane = jnp.minimum(j, n_lanes - 1)
+        lane = order[jnp.minimum(j, n_lanes - 1)]
         tp = jnp.where(last, T_place_j[pick], start_place[lane])
         to = jnp.where(last, T_over_j[pick], start_over[lane])
         act = jnp.where(last, active & ~converged_j[pick], lanes[lane])
-        budget = jnp.where(last, max_steps - n_first, jnp.where(to_convergence, max_steps, n_first))
+        budget = jnp.where(last, max_steps - n_first, first_budget)
         tp, to, k, conv, chi2 = _lm(tp, to, data, rig, strategy, budget, rtol, atol, act, loss)
+        slot = jnp.where(last, n_lanes, lane)
         slots = (
-            T_place_j.at[j].set(tp), T_over_j.at[j].set(to), steps_j.at[j].set(k),
-            converged_j.at[j].set(conv), chi2_j.at[j].set(chi2),
+            T_place_j.at[slot].set(tp), T_over_j.at[slot].set(to), steps_j.at[slot].set(k),
+            converged_j.at[slot].set(conv), chi2_j.at[slot].set(chi2),
         )  # fmt: skip
-        return slots, None
+        return j + 1, slots
 
     n_jobs = n_lanes + 1
     slots = (
@@ -203,7 +208,9 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, los
         jnp.zeros(n_jobs, bool),
         jnp.full(n_jobs, jnp.inf, dtype),
     )
-    (T_all, O_all, steps_all, conv_all, chi2_all), _ = jax.lax.scan(job, slots, jnp.arange(n_jobs))
+    _, (T_all, O_all, steps_all, conv_all, chi2_all) = jax.lax.while_loop(
+        lambda carry: carry[0] <= n_active, job, (jnp.array(0, n_active.dtype), slots)
+    )
     chi2 = masked_chi2(chi2_all[:n_lanes])
     converged1 = conv_all[:n_lanes]
     pick = jnp.argmin(chi2)
