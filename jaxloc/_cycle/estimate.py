@@ -147,7 +147,8 @@ class CycleEstimate(eqx.Module):
     - `stand_in`: `(steps, 3, 3)` bool or `None` (a closed form's): `[k, i, j]`, robot
       `i`'s missing bearing of robot `j` at step `k` was filled with a stand-in azimuth on
       the cone the triangle's other bearings put it on (the estimate is `too_few_points`;
-      [`jaxloc.refine_cycle`][] searches the azimuth from several starts).
+      [`jaxloc.refine_cycle`][] searches the azimuth from several starts, and copies
+      the mask to its estimate).
     """
 
     poses: CyclePoses

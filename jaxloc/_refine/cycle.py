@@ -39,12 +39,14 @@ from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
 from .._model.gates import (
+    AMBIGUITY_MARGIN,
     DISTINCT_MINIMUM,
     gate_all,
     gate_point,
     gated,
     mark_ambiguous,
     SIGHTING_LIMIT,
+    STAND_IN_MARGIN,
     standardized_squares,
 )
 from .._model.measurements import (
@@ -495,7 +497,7 @@ def refine_solution(
         rejected = RejectedSightings(rejected.mutual & ok, rejected.overhead & ok)
     refined = CycleEstimate(
         poses, estimate.scales, result, stats, estimate.checks, estimate.covariance,
-        estimate.alternatives, rejected,
+        estimate.alternatives, rejected, estimate.stand_in,
     )  # fmt: skip
     return refined, runner_up_chi2
 
@@ -511,9 +513,13 @@ def refined_data(data: CycleData, refined: CycleEstimate) -> CycleData:
 def finish_refinement(refined: CycleEstimate, runner_up_chi2, gate) -> CycleEstimate:
     """A [`refine_solution`][] with its gates (`(result, checks, covariance)` of
     `jaxloc._model.gates.gate_all`, unpolished): `ambiguous` when another distinct
-    minimum's cost is within `AMBIGUITY_MARGIN` of the solution's."""
+    minimum's cost is within `AMBIGUITY_MARGIN` of the solution's (`STAND_IN_MARGIN`
+    after a search over a stand-in bearing's azimuth)."""
     refined = gated(refined, gate)
-    result = mark_ambiguous(refined.result, refined.checks.chi2, runner_up_chi2)
+    margin = AMBIGUITY_MARGIN
+    if refined.stand_in is not None:
+        margin = jnp.where(jnp.any(refined.stand_in), STAND_IN_MARGIN, AMBIGUITY_MARGIN)
+    result = mark_ambiguous(refined.result, refined.checks.chi2, runner_up_chi2, margin)
     return eqx.tree_at(lambda e: e.result, refined, result)
 
 
@@ -615,9 +621,11 @@ def refine_cycle(
     starts from that formation turned about the line to the third robot by 8 evenly
     spaced angles, each with the closed form's overhead camera and with its planar flip
     (see `jaxloc._refine.azimuth`), refines every start to convergence and keeps the
-    best; the multi-start rule above decides `ambiguous`. Two stand-in bearings are not
-    searched (the result stays `too_few_points`): measured, a joint search let a wrong
-    pose through.
+    best; the multi-start rule above decides `ambiguous`, with a margin of 9
+    (`jaxloc._model.gates.STAND_IN_MARGIN`) instead of 4: these minima are discrete
+    hypotheses the data weigh weakly. Two stand-in bearings are not searched (the
+    result stays `too_few_points`): measured, a search let wrong poses through.
+    `stand_in` is copied to the refined estimate.
 
     **Robust refinement.** With a `loss`, the refinement first minimises `sum_i
     rho(|r_i|^2)` over the pixel sightings `i` (each a block of two whitened residuals;
