@@ -5,6 +5,7 @@ little is left. Never a wrong pose marked successful, never NaN."""
 
 import functools as ft
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
@@ -432,3 +433,21 @@ def test_azimuth_starts_turn_the_stand_in_formation():
     assert np.all(np.linalg.norm(np.asarray(O)[3:, 4:] - np.asarray(T_over)[4:], axis=-1) > 0.1)
     _, _, none = azimuth_starts(T_place, T_over, jnp.zeros((3, 3, 3), bool), "concurrent")
     assert not np.any(none)
+
+
+def test_a_stand_in_is_not_searched_on_invalid_input():
+    """A stand-in bearing on a cycle whose odometry is invalid (negative) or not finite (as
+    traced values, which no constructor checks): the closed form's status is the
+    input's, nothing is marked for the search, and the refinement passes it through."""
+    scenario = jaxloc.Scenario.paper("concurrent", pixel_sigma=0.0)
+    _, obs, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(1))
+    obs = eqx.tree_at(lambda o: o.mutual_visible, obs, obs.mutual_visible.at[2, 0, 1].set(False))
+    nan_first = obs.odometry.at[0].set(jnp.nan)
+    cases = [(-obs.odometry, RESULTS.invalid_observation),
+             (nan_first, RESULTS.nonfinite_observation)]  # fmt: skip
+    for odometry, status in cases:
+        bad = eqx.tree_at(lambda o: o.odometry, obs, odometry)
+        closed = jaxloc.localize_cycle(bad, scenario.rig, throw=False)
+        assert closed.result == status and not np.any(closed.stand_in)
+        refined = jaxloc.refine_cycle(bad, scenario.rig, closed, throw=False)
+        assert refined.result == status

@@ -147,12 +147,14 @@ def closed_forms(
             pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
         stats = dict(pose_sol.stats, min_angle=min_angle, odometry_rms=odo_rms)
         result = _closed_form_result(pose_sol.result, scale_ok, mutual_result, odometry)
+        # A stand-in is searched only where it is all that failed (not on invalid input).
+        searchable = stand_in & (result == RESULTS.too_few_points)
         poses = CyclePoses(T, inverse(pose_sol.pose))
         blank = CycleEstimate.from_poses(poses, scales=scales, result=result)
         estimates.append(
             CycleEstimate(
                 poses, scales, result, stats, blank.checks, blank.covariance, alternatives,
-                stand_in=stand_in,
+                stand_in=searchable,
             )
         )
     return estimates
