@@ -144,6 +144,11 @@ class CycleEstimate(eqx.Module):
       robust overhead solver) or `None`.
     - `rejected`: a [`jaxloc.RejectedSightings`][] (a refinement with a robust `loss`: the
       sightings left out as outliers) or `None`.
+    - `stand_in`: `(steps, 3, 3)` bool or `None` (a closed form's): `[k, i, j]`, robot
+      `i`'s missing bearing of robot `j` at step `k` was filled with a stand-in azimuth on
+      the cone the triangle's other bearings put it on (the estimate is `too_few_points`;
+      [`jaxloc.refine_cycle`][] searches the azimuth from several starts, and copies
+      the mask to its estimate).
     """
 
     poses: CyclePoses
@@ -154,6 +159,7 @@ class CycleEstimate(eqx.Module):
     covariance: CycleCovariance
     alternatives: CycleStarts | None = None
     rejected: RejectedSightings | None = None
+    stand_in: Bool[Array, "steps 3 3"] | None = None
 
     @classmethod
     def from_poses(

@@ -39,12 +39,14 @@ from .._cycle.observations import CycleObservations, CyclePoses
 from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
 from .._model.gates import (
+    AMBIGUITY_MARGIN,
     DISTINCT_MINIMUM,
     gate_all,
     gate_point,
     gated,
     mark_ambiguous,
     SIGHTING_LIMIT,
+    STAND_IN_MARGIN,
     standardized_squares,
 )
 from .._model.measurements import (
@@ -62,6 +64,7 @@ from .._model.measurements import (
     whitened_with_jacobian,
     without,
 )
+from .azimuth import azimuth_starts
 
 
 #: Solvers of [`jaxloc.refine_cycle`][]: jaxloc's least-squares kernel, or optimistix's
@@ -156,38 +159,48 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, l
     return out.x[0], out.x[1], out.num_steps, out.converged, out.normal.cost
 
 
-def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, loss):
+def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, loss,
+                 to_convergence=False):  # fmt: skip
     """Refine every start for a few steps; the one with the lowest cost goes on alone.
+    With `to_convergence` (bool) every start is refined to convergence: the azimuth
+    starts of a stand-in bearing begin far from every minimum, and measured, the lowest
+    cost after a few steps often led to the wrong one.
 
-    The phases are jobs of one `lax.scan` (one per start, then the last one) so that the
-    kernel and the model are traced and compiled once. Returns `(T_place, T_over,
-    num_steps, converged, picked, runner_up_chi2)`: the solution, the start it came from
-    (0 = the estimate's own poses), and the cost of another converged minimum distinct
-    from it (`inf` if none)."""
+    The phases are jobs of one `lax.while_loop` (one per active start, then the last one)
+    so that the kernel and the model are traced and compiled once, and a batch pays only
+    for the starts its problems have (the azimuth starts exist only with a stand-in).
+    Returns `(T_place, T_over, num_steps, converged, picked, runner_up_chi2)`: the
+    solution, the start it came from (0 = the estimate's own poses), and the cost of
+    another converged minimum distinct from it (some robot placement or the overhead
+    camera more than `DISTINCT_MINIMUM` away; `inf` if none)."""
     start_place, start_over, lanes = starts
     lanes = lanes & active
     dtype = start_place.dtype
     n_lanes = lanes.shape[0]
     n_first = min(max_steps, _MULTI_START_STEPS)
+    order = jnp.argsort(~lanes, stable=True)  # the active starts first
+    n_active = jnp.sum(lanes)
+    first_budget = jnp.where(to_convergence, max_steps, n_first)
 
     def masked_chi2(chi2):
         return jnp.where(lanes & jnp.isfinite(chi2), chi2, jnp.inf)
 
-    def job(slots, j):
-        T_place_j, T_over_j, steps_j, converged_j, chi2_j = slots
-        last = j == n_lanes
+    def job(carry):
+        j, (T_place_j, T_over_j, steps_j, converged_j, chi2_j) = carry
+        last = j == n_active
         pick = jnp.argmin(masked_chi2(chi2_j[:n_lanes]))
-        lane = jnp.minimum(j, n_lanes - 1)
+        lane = order[jnp.minimum(j, n_lanes - 1)]
         tp = jnp.where(last, T_place_j[pick], start_place[lane])
         to = jnp.where(last, T_over_j[pick], start_over[lane])
         act = jnp.where(last, active & ~converged_j[pick], lanes[lane])
-        budget = jnp.where(last, max_steps - n_first, n_first)
+        budget = jnp.where(last, max_steps - n_first, first_budget)
         tp, to, k, conv, chi2 = _lm(tp, to, data, rig, strategy, budget, rtol, atol, act, loss)
+        slot = jnp.where(last, n_lanes, lane)
         slots = (
-            T_place_j.at[j].set(tp), T_over_j.at[j].set(to), steps_j.at[j].set(k),
-            converged_j.at[j].set(conv), chi2_j.at[j].set(chi2),
+            T_place_j.at[slot].set(tp), T_over_j.at[slot].set(to), steps_j.at[slot].set(k),
+            converged_j.at[slot].set(conv), chi2_j.at[slot].set(chi2),
         )  # fmt: skip
-        return slots, None
+        return j + 1, slots
 
     n_jobs = n_lanes + 1
     slots = (
@@ -197,41 +210,49 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, los
         jnp.zeros(n_jobs, bool),
         jnp.full(n_jobs, jnp.inf, dtype),
     )
-    (T_all, O_all, steps_all, conv_all, chi2_all), _ = jax.lax.scan(job, slots, jnp.arange(n_jobs))
+    _, (T_all, O_all, steps_all, conv_all, chi2_all) = jax.lax.while_loop(
+        lambda carry: carry[0] <= n_active, job, (jnp.array(0, n_active.dtype), slots)
+    )
     chi2 = masked_chi2(chi2_all[:n_lanes])
     converged1 = conv_all[:n_lanes]
     pick = jnp.argmin(chi2)
     T_place, T_over = T_all[n_lanes], O_all[n_lanes]
     num_steps = steps_all[pick] + steps_all[n_lanes]  # the solution's own steps
     converged = converged1[pick] | conv_all[n_lanes]
-    distinct = jnp.sum((O_all[:n_lanes, 4:] - T_over[None, 4:]) ** 2, axis=-1) > DISTINCT_MINIMUM**2
+    positions = jnp.concatenate([T_all[..., 4:], O_all[:, None, 4:]], axis=1)
+    gaps = jnp.sum((positions[:n_lanes] - positions[n_lanes][None]) ** 2, axis=-1)
+    distinct = jnp.max(gaps, axis=-1) > DISTINCT_MINIMUM**2
     runner_up_chi2 = jnp.min(jnp.where(converged1 & distinct, chi2, jnp.inf))
     return T_place, T_over, num_steps, converged, pick, runner_up_chi2
 
 
 def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, settings, loss):
     """The default solver: one start, or the multi-start when the estimate carries other
-    starts. Returns `(T_place, T_over, num_steps, converged, multi_start_stats,
-    runner_up_chi2)` (`inf` without other starts; with a robust `loss` the costs are
-    robust ones)."""
+    starts (its `alternatives`, and the azimuths of its `stand_in` bearings). Returns
+    `(T_place, T_over, num_steps, converged, multi_start_stats, runner_up_chi2)` (`inf`
+    without other starts; with a robust `loss` the costs are robust ones)."""
     max_steps, rtol, atol = settings
     # The loop is not differentiated: `implicit_step` carries the derivatives.
     T0_place, T0_over, data, rig = jax.tree.map(
         jax.lax.stop_gradient, (T0_place, T0_over, data, rig)
     )
-    if estimate.alternatives is None:
+    others = []
+    if estimate.alternatives is not None:
+        others.append(start_placements(estimate.alternatives, estimate.scales, strategy, T0_place))
+    if estimate.stand_in is not None:
+        others.append(azimuth_starts(T0_place, T0_over, estimate.stand_in, strategy))
+    if not others:
         out = _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, loss)
         return *out[:4], {}, jnp.array(jnp.inf, T0_place.dtype)
-    T1_place, T1_over, active1 = jax.lax.stop_gradient(
-        start_placements(estimate.alternatives, estimate.scales, strategy, T0_place)
-    )
+    others = jax.lax.stop_gradient(others)
     starts = (
-        jnp.concatenate([T0_place[None], T1_place]),
-        jnp.concatenate([T0_over[None], T1_over]),
-        jnp.concatenate([jnp.ones(1, bool), active1]),
+        jnp.concatenate([T0_place[None]] + [o[0] for o in others]),
+        jnp.concatenate([T0_over[None]] + [o[1] for o in others]),
+        jnp.concatenate([jnp.ones(1, bool)] + [o[2] for o in others]),
     )
+    to_convergence = False if estimate.stand_in is None else jnp.any(estimate.stand_in)
     T_place, T_over, num_steps, converged, picked, runner_up_chi2 = _multi_start(
-        starts, active, data, rig, strategy, max_steps, rtol, atol, loss
+        starts, active, data, rig, strategy, max_steps, rtol, atol, loss, to_convergence
     )
     stats = {"start_picked": picked, "runner_up_chi2": runner_up_chi2}
     return T_place, T_over, num_steps, converged, stats, runner_up_chi2
@@ -381,12 +402,14 @@ def _optx_refine(T0_place, T0_over, data, rig, strategy, solver, settings):
     return T_place, T_over, sol.stats["num_steps"], RESULTS.promote(sol.result)
 
 
-def _start(estimate: CycleEstimate, strategy: str):
+def _start(estimate: CycleEstimate, strategy: str, multi_start: bool):
     """The estimate's placements as a start (finite: else the identity) and whether the
     refinement may run: the estimate is a usable start, successful or only flagged by the
-    fit gate (a refinement may find the consistent minimum the closed form missed), or
-    `ambiguous` by the gates with its rival minima as the other starts (the multi-start
-    decides)."""
+    fit gate (a refinement may find the consistent minimum the closed form missed),
+    `ambiguous` by the gates with its rival minima as the other starts, or (for the
+    solver with a `multi_start`) `too_few_points` with one `stand_in` bearing, whose
+    azimuth the starts search (the multi-start decides). Two stand-ins are not searched:
+    measured, a search over the first one's azimuth marked wrong poses `successful`."""
     T0_place, T0_over = estimate_placements(estimate.poses, strategy)
     finite = jnp.all(jnp.isfinite(T0_place)) & jnp.all(jnp.isfinite(T0_over))
     ident = jnp.zeros(7, T0_place.dtype).at[0].set(1.0)
@@ -398,6 +421,8 @@ def _start(estimate: CycleEstimate, strategy: str):
         # (several exact P3P roots, which no refinement can tell apart).
         rival = estimate.checks.solver_result == RESULTS.successful
         usable = usable | ((estimate.result == RESULTS.ambiguous) & rival)
+    if multi_start and estimate.stand_in is not None:
+        usable = usable | (jnp.sum(estimate.stand_in) == 1)
     return T0_place, T0_over, finite & usable
 
 
@@ -427,7 +452,7 @@ def refine_solution(
     `rejected` names the sightings left out; gate it on [`refined_data`][]."""
     strategy = observations.strategy
     data = cycle_data(observations, rig)
-    T0_place, T0_over, active = _start(estimate, strategy)
+    T0_place, T0_over, active = _start(estimate, strategy, multi_start=solver == "lm")
     settings = (max_steps, rtol, atol)
     stats = dict(estimate.stats)
     rejected = None
@@ -472,7 +497,7 @@ def refine_solution(
         rejected = RejectedSightings(rejected.mutual & ok, rejected.overhead & ok)
     refined = CycleEstimate(
         poses, estimate.scales, result, stats, estimate.checks, estimate.covariance,
-        estimate.alternatives, rejected,
+        estimate.alternatives, rejected, estimate.stand_in,
     )  # fmt: skip
     return refined, runner_up_chi2
 
@@ -488,9 +513,13 @@ def refined_data(data: CycleData, refined: CycleEstimate) -> CycleData:
 def finish_refinement(refined: CycleEstimate, runner_up_chi2, gate) -> CycleEstimate:
     """A [`refine_solution`][] with its gates (`(result, checks, covariance)` of
     `jaxloc._model.gates.gate_all`, unpolished): `ambiguous` when another distinct
-    minimum's cost is within `AMBIGUITY_MARGIN` of the solution's."""
+    minimum's cost is within `AMBIGUITY_MARGIN` of the solution's (`STAND_IN_MARGIN`
+    after a search over a stand-in bearing's azimuth)."""
     refined = gated(refined, gate)
-    result = mark_ambiguous(refined.result, refined.checks.chi2, runner_up_chi2)
+    margin = AMBIGUITY_MARGIN
+    if refined.stand_in is not None:
+        margin = jnp.where(jnp.any(refined.stand_in), STAND_IN_MARGIN, AMBIGUITY_MARGIN)
+    result = mark_ambiguous(refined.result, refined.checks.chi2, runner_up_chi2, margin)
     return eqx.tree_at(lambda e: e.result, refined, result)
 
 
@@ -583,7 +612,20 @@ def refine_cycle(
     chi-square is within 4 of the solution's, the data cannot tell the two apart:
     `result` is `ambiguous` (the lower minimum is returned). `stats` then adds
     `"start_picked"` (0 = `estimate`'s own poses) and `"runner_up_chi2"` (that other
-    minimum's cost, `inf` if none).
+    minimum's cost, `inf` if none). Two minima are distinct when some robot placement or
+    the overhead camera lies more than 10 cm apart.
+
+    **A missing bearing on its cone.** When the closed form filled one missing mutual
+    bearing with a stand-in azimuth (`estimate.stand_in`; its result `too_few_points`:
+    e.g. C1 not seeing C2 in the concurrent strategy), the refinement (solver `"lm"`)
+    starts from that formation turned about the line to the third robot by 8 evenly
+    spaced angles, each with the closed form's overhead camera and with its planar flip
+    (see `jaxloc._refine.azimuth`), refines every start to convergence and keeps the
+    best; the multi-start rule above decides `ambiguous`, with a margin of 9
+    (`jaxloc._model.gates.STAND_IN_MARGIN`) instead of 4: these minima are discrete
+    hypotheses the data weigh weakly. Two stand-in bearings are not searched (the
+    result stays `too_few_points`): measured, a search let wrong poses through.
+    `stand_in` is copied to the refined estimate.
 
     **Robust refinement.** With a `loss`, the refinement first minimises `sum_i
     rho(|r_i|^2)` over the pixel sightings `i` (each a block of two whitened residuals;

@@ -129,8 +129,9 @@ def closed_forms(
     )
     points, bearings, mask = overhead_problem(observations, T.translation())
     odometry = _observations_ok(observations)
-    _, free, unresolved = cycle_bearings(observations)
+    _, free, unresolved, stand_in = cycle_bearings(observations)
     good = mutual_result == RESULTS.successful
+    stand_in = stand_in & good & ~free
     mutual_result = RESULTS.where(good & unresolved, RESULTS.too_few_points, mutual_result)
     mutual_result = RESULTS.where(free, RESULTS.unobservable, mutual_result)
     estimates = []
@@ -146,11 +147,14 @@ def closed_forms(
             pose_sol = solve_overhead_pose(points, bearings, mask, method=method, throw=False)
         stats = dict(pose_sol.stats, min_angle=min_angle, odometry_rms=odo_rms)
         result = _closed_form_result(pose_sol.result, scale_ok, mutual_result, odometry)
+        # A stand-in is searched only where it is all that failed (not on invalid input).
+        searchable = stand_in & (result == RESULTS.too_few_points)
         poses = CyclePoses(T, inverse(pose_sol.pose))
         blank = CycleEstimate.from_poses(poses, scales=scales, result=result)
         estimates.append(
             CycleEstimate(
-                poses, scales, result, stats, blank.checks, blank.covariance, alternatives
+                poses, scales, result, stats, blank.checks, blank.covariance, alternatives,
+                stand_in=searchable,
             )
         )
     return estimates
@@ -209,8 +213,9 @@ def localize_cycle(
     steps, a wrong scale branch), `unobservable` (e.g. too few distinct placements seen
     by the overhead camera, or a robot's rotation left free by a missing bearing),
     `too_few_points` (a missing bearing the closed form cannot recover: two from one
-    triangle, or one whose robot's rotation only the other steps fix; the refinement
-    does not start from it),
+    triangle, or one whose robot's rotation only the other steps fix; for the latter
+    the bearing is filled with a stand-in azimuth, marked in `stand_in`, and
+    [`jaxloc.refine_cycle`][] starts from several azimuths),
     `ambiguous` (three points, several P3P roots), or the
     solver's own failure (`degenerate_configuration`, `nonfinite_observation`,
     `invalid_observation`, `scale_unobservable`, ...). `checks.solver_result` is the

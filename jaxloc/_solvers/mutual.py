@@ -209,10 +209,12 @@ def _fill_sources(strategy: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def fill_missing_bearings(
     bearings: Float[Array, "steps 3 3 3"], present: Bool[Array, "steps 3 3"], strategy: str
-) -> tuple[Float[Array, "steps 3 3 3"], Bool[Array, ""], Bool[Array, ""]]:
+) -> tuple[Float[Array, "steps 3 3 3"], Bool[Array, ""], Bool[Array, ""], Bool[Array, "steps 3 3"]]:
     r"""The mutual bearings of a cycle with the missing ones the closed forms can recover
-    filled in (the others NaN), and two flags: `free`, a robot's rotation is left free by
-    the data; `unresolved`, a bearing is only known to lie on its cone (see below).
+    filled in (the others NaN), two flags and a mask: `free`, a robot's rotation is left
+    free by the data; `unresolved`, a bearing is only known to lie on its cone, or not at
+    all (see below); `stand_in` `(steps, 3, 3)`, the bearings filled with a stand-in
+    azimuth on their cone.
 
     Branch-free, in two passes over every sighting at once:
 
@@ -229,7 +231,8 @@ def fill_missing_bearings(
        through the other steps and the overhead camera, but only up to a discrete
        choice (e.g. the concurrent strategy's formation turned about the C1-C3 line
        until the overhead ray meets C2's circle a second time) that the closed forms
-       cannot make (`unresolved`: they say `too_few_points`).
+       cannot make (`unresolved` and `stand_in`: they say `too_few_points`, and
+       [`jaxloc.refine_cycle`][] starts from several azimuths).
 
     A triangle missing two or more bearings after pass 1 is left with NaN (the closed
     forms report `too_few_points`).
@@ -281,15 +284,17 @@ def fill_missing_bearings(
     inexact = off & ~ok & ~(take & have)  # left NaN, or a stand-in
     ok = ok | take
     free = jnp.any(inexact & (same_observer == K))
-    return jnp.where((ok | ~off)[..., None], u, jnp.nan), free, jnp.any(inexact) & ~free
+    filled = jnp.where((ok | ~off)[..., None], u, jnp.nan)
+    return filled, free, jnp.any(inexact) & ~free, take & ~have
 
 
 def cycle_bearings(
     observations,
-) -> tuple[Float[Array, "steps 3 3 3"], Bool[Array, ""], Bool[Array, ""]]:
+) -> tuple[Float[Array, "steps 3 3 3"], Bool[Array, ""], Bool[Array, ""], Bool[Array, "steps 3 3"]]:
     """The mutual bearings of a [`jaxloc.CycleObservations`][] as the closed forms use
     them: those marked visible and finite, the missing ones filled where the geometry
-    allows, and the flags `free` and `unresolved` of [`fill_missing_bearings`][]."""
+    allows, the flags `free` and `unresolved` and the mask `stand_in` of
+    [`fill_missing_bearings`][]."""
     mutual = observations.mutual
     present = observations.mutual_visible & jnp.all(jnp.isfinite(mutual), axis=-1)
     return fill_missing_bearings(mutual, present, observations.strategy)
