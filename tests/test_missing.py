@@ -156,7 +156,8 @@ def test_random_missing_sightings_never_a_wrong_pose(strategy):
     observable = vis & out["observable"]
     # Concurrent: a missing bearing of C1 (a quarter of the cycles) is searched on its
     # cone (see test_each_sighting_removed_in_turn); some of those are `ambiguous`, and two
-    # such bearings stay `too_few_points` (47 of 57 localized here; 60% before the search).
+    # such bearings stay `too_few_points` (47 of 57 localized here;
+    # the bound was 0.6 before the search).
     localized = np.mean(out["refined"][observable] == 0)
     assert localized > (0.9 if strategy == "sequential" else 0.8), localized
     # No successful estimate on a cycle whose measurements do not determine it.

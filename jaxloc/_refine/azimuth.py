@@ -28,9 +28,6 @@ from .._model.mirrors import flip_start
 #: circle, the closed form's own included): consecutive starts 45 degrees apart, so every
 #: minimum has a start within 22.5 degrees of it.
 AZIMUTH_STARTS = 8
-#: Turns (the solution's own included) over which a refined solution's cost is profiled
-#: to find its rival over the azimuth (10 degrees apart).
-AZIMUTH_PROFILE = 36
 
 
 def _held_at_one_step(strategy: str) -> np.ndarray:
