@@ -43,6 +43,9 @@ def test_readme_command_on_the_example(tmp_path, capsys):
     assert code == 0, text
     assert "sequential cycle from" in text and "successful (refined)" in text
     assert "Missing sightings (marker not found in the image): 1\n" in text
+    # The fit line: the chi-square against its limit, and the reliability figure.
+    fit = next(line for line in text.splitlines() if line.startswith("Fit: chi-square "))
+    assert "degrees of freedom (limit " in fit and "of its standard deviations" in fit
     assert "  step 1: C2 seeing C3 (mutual): marker not found\n" in text
     assert "Rejected sightings (least squares, none left out; --loss cauchy leaves " \
         "outliers out): none\n" in text  # fmt: skip
@@ -53,6 +56,9 @@ def test_readme_command_on_the_example(tmp_path, capsys):
     assert d["missing_sightings"] == [{"kind": "mutual", "step": 1, "observer": "C2",
                                        "target": "C3", "reason": "marker not found"}]  # fmt: skip
     assert d["rejected_sightings"] == []
+    checks = d["checks"]
+    assert checks["chi2"] <= checks["chi2_limit"] and checks["dof"] > 0
+    assert checks["worst_sighting"] <= 1.0 and checks["blunder_nees"] > 0
     for r in ("C", "C1", "C2", "C3"):
         p = d["poses"][r]
         err = np.subtract(p["position_m"], truth["end_of_cycle"][r]["position_m"])

@@ -265,6 +265,7 @@ def _cmd_localize(args) -> int:
     d = res.to_dict()
     print(f"{team.strategy} cycle from {args.team}: {d['status']} ({d['method']})")
     _print_poses(d)
+    _print_fit(d["checks"])
     _print_sightings(d, args)
     for note in d["notes"]:
         print(f"  note: {note}")
@@ -283,6 +284,22 @@ def _print_poses(d: dict) -> None:
         if "position_std_m" in p:
             std = "  std " + ", ".join(f"{100 * x:.2f}" for x in p["position_std_m"]) + " cm"
         print(f"  {name:<3} position ({pos})  yaw/pitch/roll ({ypr}){std}")
+
+
+def _print_fit(c: dict) -> None:
+    """The fit's chi-square and how far a blunder no test sees could have moved a pose."""
+    if c["chi2"] is None or c["chi2_limit"] is None:
+        return
+    line = (
+        f"Fit: chi-square {c['chi2']:.1f} for {c['dof']} degrees of freedom "
+        f"(limit {c['chi2_limit']:.1f})"
+    )
+    if c["blunder_nees"] is not None:
+        line += (
+            f"; a blunder in one measurement that no test sees could move a position by up "
+            f"to {c['blunder_nees'] ** 0.5:.1f} of its standard deviations"
+        )
+    print(line)
 
 
 def _sighting_text(r: dict) -> str:

@@ -61,6 +61,16 @@ class FitCheck(eqx.Module):
       sighting, an odometry distance, a prior's row) relative to its limit
       (`jaxloc._model.gates.worst_measurement`); above 1 the estimate is
       `inconsistent_fit`. NaN where not computed (a start).
+    - `blunder_nees`: how far an undetected blunder could have moved the estimate: the
+      largest NEES (under the estimate's own position covariance) that a gross error in
+      any one measurement adds to an end-of-cycle position while its own normalized
+      residual stays at the sighting gate's limit, where that gate catches it only
+      about half the time (Baarda's external reliability, to first order;
+      `jaxloc._model.gates.blunder_shifts`). Small (a few times the limit) where every
+      measurement is checked by others; large where one is not: the concurrent
+      strategy's C1 bearings, whose leverage is 0.96-0.999, leave a blunder there
+      unseen by any test on the cycle's data. Reported, not gated. `inf` where the
+      information is singular; NaN where not computed (a start, the tracker).
     """
 
     solver_result: RESULTS
@@ -70,6 +80,7 @@ class FitCheck(eqx.Module):
     chi2_limit: Float[Array, ""]
     observable: Bool[Array, ""]
     worst_sighting: Float[Array, ""]
+    blunder_nees: Float[Array, ""]
 
 
 class CycleStarts(eqx.Module):
@@ -175,7 +186,7 @@ class CycleEstimate(eqx.Module):
         nan = jnp.full(T.shape[:-3], jnp.nan, dtype)
         checks = FitCheck(
             result, nan, nan, jnp.zeros(T.shape[:-3], jnp.int32), nan,
-            jnp.zeros(T.shape[:-3], bool), nan,
+            jnp.zeros(T.shape[:-3], bool), nan, nan,
         )  # fmt: skip
         zeros = jnp.zeros(T.shape[:-3] + (4, 3, 3), dtype)
         covariance = CycleCovariance(

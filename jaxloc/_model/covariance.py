@@ -82,14 +82,23 @@ def _final_positions(T_place, T_over, strategy: str):
     return positions
 
 
+def final_position_jacobian(T_place, T_over, strategy: str) -> Float[Array, "4 3 n"]:
+    """`(4, 3, n)`: the derivative of the end-of-cycle (C, C1, C2, C3) positions (m, in
+    `W`) with respect to the tangent of the placements `(T_place, T_over)`."""
+    positions = _final_positions(T_place, T_over, strategy)
+    n = 6 * T_place.shape[0]  # placement 0 is the gauge; the overhead camera adds 6
+    return jax.jacfwd(positions)(jnp.zeros(n, T_place.dtype))
+
+
 def covariance_of_tangent(
-    tangent: Float[Array, "n n"], ok, T_place, T_over, strategy: str
+    tangent: Float[Array, "n n"], ok, T_place, T_over, strategy: str, position_jacobian=None
 ) -> CycleCovariance:
     """The [`jaxloc.CycleCovariance`][] of a tangent covariance `(n, n)`: its position
-    (through the poses, by `jax.jacfwd`) and rotation blocks of the four end-of-cycle
-    poses."""
-    positions = _final_positions(T_place, T_over, strategy)
-    G = jax.jacfwd(positions)(jnp.zeros(tangent.shape[0], tangent.dtype))  # (4, 3, n)
+    (through the poses, by [`final_position_jacobian`][], or the one given) and rotation
+    blocks of the four end-of-cycle poses."""
+    G = position_jacobian
+    if G is None:
+        G = final_position_jacobian(T_place, T_over, strategy)
     S = jnp.asarray(_final_selection(strategy), tangent.dtype)
     return CycleCovariance(
         tangent=tangent,

@@ -50,6 +50,7 @@ from jaxtyping import Array, Float, Int
 
 from .._core.least_squares import solve_spd
 from .._core.linalg import (
+    adjugate3,
     row_equilibrated_gram,
     scaled_inverse_trace,
     small_spd_inverse,
@@ -59,7 +60,13 @@ from .._core.results import RESULTS
 from .._cycle.estimate import CycleCovariance, CycleEstimate, FitCheck, start_placements
 from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
-from .covariance import covariance_of_tangent, estimate_placements, final_offsets, with_offset
+from .covariance import (
+    covariance_of_tangent,
+    estimate_placements,
+    final_offsets,
+    final_position_jacobian,
+    with_offset,
+)
 from .measurements import (
     CycleData,
     normal_equations_of_blocks,
@@ -191,6 +198,53 @@ def worst_measurement(r, J, covariance, pairs: int, num_measurements, noise_mode
     pixel, single = sighting_limits(num_measurements, noise_model, r.dtype)
     return jnp.maximum(
         jnp.max(t_pixel, initial=0.0) / pixel, jnp.max(t_single, initial=0.0) / single
+    )
+
+
+def blunder_shifts(J, covariance, position_jacobian, position_covariance, pairs: int,
+                   num_measurements, noise_model: str):  # fmt: skip
+    """Baarda's external reliability of a least-squares fit, per measurement: `(pixel
+    (pairs,), single (rows,))`, the largest NEES that a blunder in that one measurement
+    adds to any end-of-cycle position while it stays hidden from
+    [`standardized_squares`][]'s test: its noise-free statistic at the test's limit
+    ([`sighting_limits`][]; detected about half the time). Rows as in
+    [`worst_measurement`][]: whitened Jacobian `J` `(m, n)`, `covariance = (J^T J)^-1`;
+    `position_jacobian` `(4, 3, n)` maps the tangent to the end-of-cycle positions, whose
+    covariance is `position_covariance` `(4, 3, 3)` (a position with none, the gauge,
+    counts 0). A blunder `b` in a sighting's two whitened rows moves the tangent by `C
+    J_s^T b` and raises its statistic by `b^T R b`, `R = I - J_s C J_s^T` (floored as the
+    test floors it); the largest NEES under `b^T R b = limit` is `limit` times the
+    largest eigenvalue of `R^-1 M`, `M` the NEES's quadratic form in `b`."""
+    W = jnp.einsum("cin,nk,mk->cim", position_jacobian, covariance, J)  # (4, 3, m)
+    adj, det = jax.vmap(adjugate3)(position_covariance)
+    good = det > 0
+    scale = jnp.where(good, 1.0 / jnp.where(good, det, 1.0), 0.0)
+    information = adj * scale[:, None, None]
+    Wp = W[:, :, : 2 * pairs].reshape(4, 3, pairs, 2)
+    M = jnp.einsum("cisa,cij,cjsb->csab", Wp, information, Wp)  # (4, pairs, 2, 2)
+    Jb = J[: 2 * pairs].reshape(pairs, 2, -1)
+    R = jnp.eye(2, dtype=J.dtype)[None] * (1.0 + MIN_REDUNDANCY) - jnp.einsum(
+        "sai,ij,sbj->sab", Jb, covariance, Jb
+    )
+    det_R = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] * R[:, 1, 0]
+    det_R = jnp.maximum(det_R, MIN_REDUNDANCY**2)
+    # R^-1 M = adj(R) M / det(R), 2 x 2: the larger root of its characteristic polynomial.
+    adj_R = jnp.stack(
+        [jnp.stack([R[:, 1, 1], -R[:, 0, 1]], -1), jnp.stack([-R[:, 1, 0], R[:, 0, 0]], -1)], -2
+    )
+    A = jnp.einsum("sab,csbd->csad", adj_R, M) / det_R[None, :, None, None]
+    half_trace = 0.5 * (A[..., 0, 0] + A[..., 1, 1])
+    det_A = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    largest = half_trace + jnp.sqrt(jnp.maximum(half_trace**2 - det_A, 0.0))
+    Wr = W[:, :, 2 * pairs :]
+    row_nees = jnp.einsum("cik,cij,cjk->ck", Wr, information, Wr)  # (4, rows)
+    Jr = J[2 * pairs :]
+    leverage = jnp.einsum("ki,ij,kj->k", Jr, covariance, Jr)
+    redundancy = jnp.maximum(1.0 - leverage, 0.0) + MIN_REDUNDANCY
+    pixel_limit, single_limit = sighting_limits(num_measurements, noise_model, J.dtype)
+    return (
+        pixel_limit * jnp.max(largest, axis=0),
+        single_limit * jnp.max(row_nees, axis=0) / redundancy,
     )
 
 
@@ -365,7 +419,8 @@ def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: 
     # The step to the minimum of the model linearized here, and the misfit left there.
     step = -ml_covariance @ g
     chi2_min = jnp.maximum(chi2 + g @ step, 0.0)
-    ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy)
+    position_jacobian = final_position_jacobian(P, O, strategy)
+    ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy, position_jacobian)
     offset = -step
     dp, dr = final_offsets(offset, P, O, strategy)
     if polished:
@@ -384,7 +439,14 @@ def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: 
     result = RESULTS.where(
         (result == RESULTS.successful) & ~consistent, RESULTS.inconsistent_fit, result
     )
-    checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable, worst)
+    pairs = (r.shape[0] - data.odometry.shape[-1]) // 2
+    pixel, single = blunder_shifts(
+        J, ml_covariance, position_jacobian, covariance.position, pairs,
+        data.num_sightings + data.num_odometry, rig.noise_model,
+    )  # fmt: skip
+    blunder = jnp.maximum(jnp.max(pixel, initial=0.0), jnp.max(single, initial=0.0))
+    blunder = jnp.where(ok_information, blunder, jnp.inf)
+    checks = FitCheck(solver_result, chi2, chi2_min, dof, limit, is_observable, worst, blunder)
     return result, checks, covariance
 
 

@@ -500,7 +500,8 @@ def _gate(rig: Rig, prior: OneStepPrior, mutual, roots: _Roots, out, start_ok, c
                            RESULTS.inconsistent_fit, result)  # fmt: skip
     result = RESULTS.where((result == RESULTS.successful) & roots.ambiguous, RESULTS.ambiguous,
                            result)  # fmt: skip
-    return FitCheck(solver, cost, chi2, dof, limit, observable, worst), result
+    nan = jnp.full((), jnp.nan, cost.dtype)  # blunder_nees: not computed by the tracker
+    return FitCheck(solver, cost, chi2, dof, limit, observable, worst, nan), result
 
 
 @jit

@@ -525,7 +525,8 @@ def smoother_update(
     result = RESULTS.where(code == 0, RESULTS.successful, result)
     result = _result_of_code(code, result)
     poses, cov = newest_end(layout, state, s, covariance, rig)
-    checks = FitCheck(result, chi2, chi2, dof, limit, observable, worst)
+    nan = jnp.full((), jnp.nan, chi2.dtype)  # blunder_nees: not computed by the tracker
+    checks = FitCheck(result, chi2, chi2, dof, limit, observable, worst, nan)
     return state, SmootherEstimate(poses, cov, result, checks, num_steps)
 
 

@@ -280,6 +280,7 @@ class ImageLocalization:
             "poses": out_poses,
             "positions_m": {r: Tb[:, i, 4:].tolist() for i, r in enumerate(GROUND)},
             "stats": {k: np.asarray(v).tolist() for k, v in self.estimate.stats.items()},
+            "checks": _checks_dict(self.estimate.checks),
             "detections": dets,
             "missing_sightings": self.missing(),
             "rejected_sightings": [
@@ -304,6 +305,20 @@ class ImageLocalization:
                     "reason": "cut by the image border" if d.detected else "marker not found",
                 })  # fmt: skip
         return out
+
+
+def _checks_dict(checks) -> dict[str, Any]:
+    """The estimate's goodness-of-fit and reliability figures (`jaxloc.FitCheck`), JSON
+    ready (non-finite as `None`)."""
+
+    def num(x):
+        x = float(x)
+        return x if np.isfinite(x) else None
+
+    return {
+        "chi2": num(checks.chi2), "dof": int(checks.dof), "chi2_limit": num(checks.chi2_limit),
+        "worst_sighting": num(checks.worst_sighting), "blunder_nees": num(checks.blunder_nees),
+    }  # fmt: skip
 
 
 def localize_images(
