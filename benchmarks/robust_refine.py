@@ -17,8 +17,10 @@ sighting, the RMS of the bound's standard deviation over the same cycles), its r
 (targets: <= 1.1 for one-in-10%, <= 1.3 for 5%-of-sightings), the fraction of outliers
 named (`rejected`; target >= 95% in one-in-10%), and of those detectable at all (noise-free
 standardized statistic at the truth above the sighting gate's limit: an outlier below it
-hides in directions no other measurement checks), the clean sightings rejected, and the
-statuses. Writes JSON (strict, NaN as null).
+hides in directions no other measurement checks), the clean sightings rejected, the
+statuses, and the successful cycles whose C error exceeds 5 (10) standard deviations of
+the bound (wrong poses) with the RMS of error over bound without them. Writes JSON
+(strict, NaN as null).
 """
 
 import argparse
@@ -116,6 +118,7 @@ def _batch(keys, loss_scale, *, strategy, study, loss):
             "outliers": jnp.sum(m) + jnp.sum(o),
             "named": jnp.sum(rej.mutual & m) + jnp.sum(rej.overhead & o),
             "detectable": jnp.sum(dm) + jnp.sum(do),
+            "rejected": jnp.sum(rej.mutual) + jnp.sum(rej.overhead),
             "named_detectable": jnp.sum(rej.mutual & dm) + jnp.sum(rej.overhead & do),
             "false": jnp.sum(rej.mutual & ~m) + jnp.sum(rej.overhead & ~o),
             "sightings": jnp.sum(obs.overhead_visible) + 6 * obs.mutual.shape[0],
@@ -134,11 +137,18 @@ def _summary(out, names):
         rmse = float(np.sqrt(np.mean(out[f"{stage}_error"][ok] ** 2)))
         bound = float(np.sqrt(np.mean(out["crlb_var"][ok])))
         ok_c = ok & corrupted
+        z2 = out[f"{stage}_error"] ** 2 / np.where(out["crlb_var"] > 0, out["crlb_var"], np.inf)
+        wrong = ok & (z2 > 25.0)
         row[stage] = {
             "successful": int(ok.sum()),
             "rmse_C_m": rmse,
             "crlb_C_m": bound,
             "ratio": rmse / bound,
+            "wrong_above_5_sd": int(wrong.sum()),
+            "wrong_above_10_sd": int((ok & (z2 > 100.0)).sum()),
+            "ratio_without_wrong": float(
+                np.sqrt(np.mean(z2[ok & ~wrong]) if (ok & ~wrong).any() else np.nan)
+            ),
             "corrupted_successful": int(ok_c.sum()),
             "corrupted_ratio": float(
                 np.sqrt(np.mean(out[f"{stage}_error"][ok_c] ** 2) / np.mean(out["crlb_var"][ok_c]))
@@ -157,6 +167,20 @@ def _summary(out, names):
     row["detectable"] = int(out["detectable"][vis].sum())
     row["named_detectable"] = int(out["named_detectable"][vis].sum())
     row["named_fraction_of_detectable"] = row["named_detectable"] / max(row["detectable"], 1)
+    missed = vis & (out["detectable"] > out["named_detectable"])
+    row["missed_detectable_cycles"] = int(missed.sum())
+    row["missed_detectable_unobservable"] = int(
+        (missed & (out["robust"] == {v: k for k, v in names.items()}["unobservable"])).sum()
+    )
+    z = out["robust_error"] / np.sqrt(np.where(out["crlb_var"] > 0, out["crlb_var"], np.inf))
+    wrong = np.nonzero(vis & (out["robust"] == 0) & (z > 5.0))[0]
+    row["robust_wrong_cycles"] = [
+        {"cycle": int(i), "error_m": float(out["robust_error"][i]),
+         "bound_m": float(np.sqrt(out["crlb_var"][i])), "outliers": int(out["outliers"][i]),
+         "named": int(out["named"][i]), "rejected": int(out["rejected"][i]),
+         "closed": names[int(out["closed"][i])], "plain_error_m": float(out["plain_error"][i])}
+        for i in wrong
+    ]  # fmt: skip
     clean = int((out["sightings"][vis] - out["outliers"][vis]).sum())
     row["clean_rejected"] = int(out["false"][vis].sum())
     row["clean_rejected_rate"] = row["clean_rejected"] / max(clean, 1)
@@ -215,8 +239,18 @@ def main() -> None:
                 f"ratio {st['ratio']:.3f}  (corrupted cycles: {st['corrupted_successful']} ok, "
                 f"ratio {st['corrupted_ratio']})"
             )
+            print(
+                f"          wrong (C error above 5 / 10 bound sd): {st['wrong_above_5_sd']} / "
+                f"{st['wrong_above_10_sd']}; RMS of error/bound without them "
+                f"{st['ratio_without_wrong']:.3f}"
+            )
             print(f"          status {st['status']}")
-        print(f"  robust steps median/p99/max {r['robust_steps_median_p99_max']}\n", flush=True)
+        print(f"  robust steps median/p99/max {r['robust_steps_median_p99_max']}")
+        print(f"  cycles missing a detectable outlier: {r['missed_detectable_cycles']} "
+              f"({r['missed_detectable_unobservable']} end unobservable)")  # fmt: skip
+        for w in r["robust_wrong_cycles"]:
+            print(f"  wrong robust pose: {w}")
+        print(flush=True)
     with open(args.out, "w") as f:
         f.write(dumps_json({"command": "python benchmarks/robust_refine.py", "args": vars(args),
                             "loss_scale": scale, "studies": rows}))  # fmt: skip
