@@ -40,7 +40,7 @@ from jaxloc._core.files import dumps_json  # noqa: E402
 from jaxloc._core.linalg import gram, spd_inverse  # noqa: E402
 from jaxloc._core.robust import DEFAULT_LOSS_SCALE  # noqa: E402
 from jaxloc._model.covariance import crlb_inputs  # noqa: E402
-from jaxloc._model.gates import sighting_limits  # noqa: E402
+from jaxloc._model.gates import redundancies, sighting_limits  # noqa: E402
 from jaxloc._model.measurements import OBSERVER, TARGET, whitened_with_jacobian  # noqa: E402
 from jaxloc._sim.defects import _sighting_mask  # noqa: E402
 
@@ -72,8 +72,7 @@ def _detectable(rig, truth, rel, strategy, obs, bad, m, o):
     C, _ = spd_inverse(gram(J))
     steps = obs.mutual.shape[0]
     pairs = 9 * steps
-    Jb = J[: 2 * pairs].reshape(pairs, 2, -1)
-    R = jnp.eye(2, dtype=J.dtype)[None] - jnp.einsum("sai,ij,sbj->sab", Jb, C, Jb)
+    R, _ = redundancies(J, C, pairs, 0.0)
     pair = (slice(None), OBSERVER, TARGET)
     d_m = (bad.mutual_pixels - obs.mutual_pixels)[pair] * data.mutual_weight[pair][..., None]
     d_o = (bad.overhead_pixels - obs.overhead_pixels) * data.overhead_weight[..., None]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from jaxloc._core.results import RESULTS
 from jaxloc._model.covariance import estimate_placements, final_position_jacobian
-from jaxloc._model.gates import blunder_shifts, sighting_limits
+from jaxloc._model.gates import blunder_shifts, MIN_REDUNDANCY, sighting_limits
 from jaxloc._model.measurements import cycle_data, OBSERVER, TARGET, whitened_with_jacobian
 from jaxloc._sim.defects import _moved
 
@@ -31,7 +31,7 @@ def _hidden_blunder(obs, rig, estimate, share):
     steps = obs.mutual.shape[0]
     s = int(np.argmax(np.asarray(pixel)[: 6 * steps]))  # the worst mutual sighting
     Js = J[2 * s : 2 * s + 2]
-    R = np.eye(2) * (1.0 + 1e-3) - Js @ C @ Js.T
+    R = np.eye(2) * (1.0 + MIN_REDUNDANCY) - Js @ C @ Js.T
     best = (0.0, None)
     for q in range(4):
         if np.trace(Sigma[q]) <= 0:
@@ -78,5 +78,7 @@ def test_a_hidden_blunder_moves_the_estimate_as_blunder_nees_predicts(strategy):
     d = np.concatenate([dc[None], dp])
     Sigma = np.asarray(refined.covariance.position)
     nees = [d[q] @ np.linalg.solve(Sigma[q], d[q]) for q in range(4) if np.trace(Sigma[q]) > 0]
-    print(strategy, k, i, j, offset, "predicted", predicted, "figure", figure, "moved", max(nees))
+    # Shown with `pytest -s` (the README quotes it).
+    print(f"{strategy}: blunder {offset} px on step {k}'s sighting of robot {j} by robot {i}: "
+          f"position NEES moved {max(nees):.2f}, predicted {predicted:.2f}")  # fmt: skip
     assert max(nees) == pytest.approx(predicted, rel=0.15)

@@ -66,10 +66,10 @@ class FitCheck(eqx.Module):
       any one measurement adds to an end-of-cycle position while its own normalized
       residual stays at the sighting gate's limit, where that gate catches it only
       about half the time (Baarda's external reliability, to first order;
-      `jaxloc._model.gates.blunder_shifts`). Small (a few times the limit) where every
-      measurement is checked by others; large where one is not: the concurrent
-      strategy's C1 bearings, whose leverage is 0.96-0.999, leave a blunder there
-      unseen by any test on the cycle's data. Reported, not gated. `inf` where the
+      `jaxloc._model.gates.blunder_shifts`). Large where some measurement is barely
+      checked by the others: the concurrent strategy's C1 bearings (leverage 0.958-0.999
+      on the paper's formation) leave a blunder there unseen by any test on the cycle's
+      data. Reported, not gated. `inf` where the
       information is singular; NaN where not computed (a start, the tracker).
     """
 

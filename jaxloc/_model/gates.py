@@ -164,6 +164,20 @@ def sighting_limits(num_measurements, noise_model: str, dtype):
     return pixel, z2
 
 
+def redundancies(J, covariance, pairs: int, floor):
+    """Each measurement's share of its own noise that a least-squares fit does not absorb:
+    `(pixel (pairs, 2, 2), single (rows,))`, `(1 + floor) I - P_b` for a pixel sighting
+    (`P_b = J_b C J_b^T` its leverage block, its two whitened rows of `J` `(m, n)`; `C =
+    covariance = (J^T J)^-1`) and `max(1 - P, 0) + floor` for a single row. Rows as in
+    [`standardized_squares`][]."""
+    Jb = J[: 2 * pairs].reshape(pairs, 2, -1)
+    P = jnp.einsum("sai,ij,sbj->sab", Jb, covariance, Jb)
+    Jr = J[2 * pairs :]
+    leverage = jnp.einsum("mi,ij,mj->m", Jr, covariance, Jr)
+    eye = jnp.eye(2, dtype=J.dtype)[None]
+    return eye * (1.0 + floor) - P, jnp.maximum(1.0 - leverage, 0.0) + floor
+
+
 def standardized_squares(r, J, covariance, pairs: int, floor):
     """Baarda's standardized squared residuals of a least-squares fit: `(pixel (pairs,),
     single (rows,))`. The first `2 pairs` rows of the whitened residuals `r` `(m,)` and
@@ -173,18 +187,14 @@ def standardized_squares(r, J, covariance, pairs: int, floor):
     absorbs `P_b` of its noise), a row's `r^2 / (max(1 - P, 0) + floor)`: `floor` keeps
     a measurement the fit leans on entirely (its residual ~0 by construction) from
     amplifying rounding. Where the 2 x 2 system is not positive, the plain squares."""
-    Jb = J[: 2 * pairs].reshape(pairs, 2, -1)
-    P = jnp.einsum("sai,ij,sbj->sab", Jb, covariance, Jb)
-    C = jnp.eye(2, dtype=r.dtype)[None] * (1.0 + floor) - P
+    C, redundancy = redundancies(J, covariance, pairs, floor)
     rb = r[: 2 * pairs].reshape(pairs, 2)
     det = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
     quad = C[:, 1, 1] * rb[:, 0] ** 2 - 2.0 * C[:, 0, 1] * rb[:, 0] * rb[:, 1]
     quad = quad + C[:, 0, 0] * rb[:, 1] ** 2
     good = det > 0
     pixel = jnp.where(good, quad / jnp.where(good, det, 1.0), jnp.sum(rb * rb, axis=-1))
-    rows, Jr = r[2 * pairs :], J[2 * pairs :]
-    leverage = jnp.einsum("mi,ij,mj->m", Jr, covariance, Jr)
-    return pixel, rows**2 / (jnp.maximum(1.0 - leverage, 0.0) + floor)
+    return pixel, r[2 * pairs :] ** 2 / redundancy
 
 
 def worst_measurement(r, J, covariance, pairs: int, num_measurements, noise_model: str):
@@ -212,9 +222,10 @@ def blunder_shifts(J, covariance, position_jacobian, position_covariance, pairs:
     `position_jacobian` `(4, 3, n)` maps the tangent to the end-of-cycle positions, whose
     covariance is `position_covariance` `(4, 3, 3)` (a position with none, the gauge,
     counts 0). A blunder `b` in a sighting's two whitened rows moves the tangent by `C
-    J_s^T b` and raises its statistic by `b^T R b`, `R = I - J_s C J_s^T` (floored as the
-    test floors it); the largest NEES under `b^T R b = limit` is `limit` times the
-    largest eigenvalue of `R^-1 M`, `M` the NEES's quadratic form in `b`."""
+    J_s^T b` and raises its statistic by `b^T R b`, `R = I - J_s C J_s^T`
+    ([`redundancies`][], floored as the test floors it); the largest NEES under `b^T R b
+    = limit` is `limit` times the largest eigenvalue of `R^-1 M`, `M` the NEES's
+    quadratic form in `b`."""
     W = jnp.einsum("cin,nk,mk->cim", position_jacobian, covariance, J)  # (4, 3, m)
     adj, det = jax.vmap(adjugate3)(position_covariance)
     good = det > 0
@@ -222,10 +233,7 @@ def blunder_shifts(J, covariance, position_jacobian, position_covariance, pairs:
     information = adj * scale[:, None, None]
     Wp = W[:, :, : 2 * pairs].reshape(4, 3, pairs, 2)
     M = jnp.einsum("cisa,cij,cjsb->csab", Wp, information, Wp)  # (4, pairs, 2, 2)
-    Jb = J[: 2 * pairs].reshape(pairs, 2, -1)
-    R = jnp.eye(2, dtype=J.dtype)[None] * (1.0 + MIN_REDUNDANCY) - jnp.einsum(
-        "sai,ij,sbj->sab", Jb, covariance, Jb
-    )
+    R, redundancy = redundancies(J, covariance, pairs, MIN_REDUNDANCY)
     det_R = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] * R[:, 1, 0]
     det_R = jnp.maximum(det_R, MIN_REDUNDANCY**2)
     # R^-1 M = adj(R) M / det(R), 2 x 2: the larger root of its characteristic polynomial.
@@ -238,9 +246,6 @@ def blunder_shifts(J, covariance, position_jacobian, position_covariance, pairs:
     largest = half_trace + jnp.sqrt(jnp.maximum(half_trace**2 - det_A, 0.0))
     Wr = W[:, :, 2 * pairs :]
     row_nees = jnp.einsum("cik,cij,cjk->ck", Wr, information, Wr)  # (4, rows)
-    Jr = J[2 * pairs :]
-    leverage = jnp.einsum("ki,ij,kj->k", Jr, covariance, Jr)
-    redundancy = jnp.maximum(1.0 - leverage, 0.0) + MIN_REDUNDANCY
     pixel_limit, single_limit = sighting_limits(num_measurements, noise_model, J.dtype)
     return (
         pixel_limit * jnp.max(largest, axis=0),
