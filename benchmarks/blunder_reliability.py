@@ -8,9 +8,9 @@ measurement adds to an end-of-cycle position while its own test statistic sits a
 limit) and the leverage of each mutual sighting (largest eigenvalue of its 2 x 2 block `P_b
 = J_b C J_b^T` at the refined fit; 1 means no other measurement checks it). Then the three
 concurrent cycles of `benchmarks/corrupted_cycles.py` (seed 0) that ended `successful` and
-wrong with a 30-100 px outlier: their position NEES against the truth and their
-`blunder_nees`. Prints one line per cycle and writes JSON (leverages as [min, max] over
-C1's bearings and over the others').
+wrong with a 30-100 px outlier: which sighting it hit (robot 0 is C1), their position
+NEES against the truth and their `blunder_nees`. Prints one line per cycle and writes
+JSON (leverages as [min, max] over C1's bearings and over the others').
 """
 
 import argparse
@@ -28,7 +28,7 @@ from jaxloc._core.linalg import gram, spd_inverse  # noqa: E402
 from jaxloc._model.covariance import estimate_placements  # noqa: E402
 from jaxloc._model.gates import redundancies  # noqa: E402
 from jaxloc._model.measurements import cycle_data, whitened_with_jacobian  # noqa: E402
-from jaxloc._sim.defects import corrupt_observations  # noqa: E402
+from jaxloc._sim.defects import _sighting_mask, corrupt_observations  # noqa: E402
 from jaxloc._study.robustness import final_positions, position_nees, random_formation  # noqa: E402
 
 
@@ -82,12 +82,15 @@ def main() -> None:
         k_geo, k_sim, k_defect = jr.split(key, 3)
         scenario = random_formation(base, k_geo, 0.3, 0.5)
         truth, obs, _ = jaxloc.simulate_cycle(scenario, k_sim)
+        mutual, overhead = _sighting_mask(obs, jr.split(k_defect)[0])  # as corrupt_observations
         obs = corrupt_observations(obs, scenario.rig, outlier, key=k_defect)
         closed = jaxloc.localize_cycle(obs, scenario.rig, throw=False)
         refined = jaxloc.refine_cycle(obs, scenario.rig, closed, throw=False)
         nees = position_nees(refined, final_positions(truth.poses))
         row = {
             "cycle": index, "status": int(jaxloc.status_code(refined.result)),
+            "outlier_mutual_step_observer_target": np.argwhere(np.asarray(mutual)).tolist(),
+            "outlier_overhead_step_robot": np.argwhere(np.asarray(overhead)).tolist(),
             "nees": [float(x) for x in nees], "blunder_nees": float(refined.checks.blunder_nees),
         }  # fmt: skip
         wrong.append(row)
