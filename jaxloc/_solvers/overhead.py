@@ -155,8 +155,12 @@ def _candidates(X, b, use, eps):
 
 
 def _score(params, X, b, w, use):
-    """Sum of squared chordal bearing errors of each candidate on every usable point, and
-    whether it puts every usable point in front of the camera."""
+    """Trimmed sum of squared chordal bearing errors of each candidate on the usable
+    points (the largest quarter of them left out, so one outlying sighting cannot pull
+    the choice towards a wrong candidate), and whether it puts every usable point in
+    front of the camera."""
+    count = jnp.sum(use)
+    kept = count - count // 4
 
     def one(p):
         T = jaxlie.SE3(wxyz_xyz=p)
@@ -164,7 +168,9 @@ def _score(params, X, b, w, use):
         q = matvec(R[None], X) + T.translation()[None]
         chord2 = jnp.sum((safe_normalize(q) - b) ** 2, axis=-1)
         in_front = jnp.sum(q * b, axis=-1) > 0
-        return jnp.sum(w * chord2), jnp.all(in_front | ~use)
+        ascending = jnp.sort(jnp.where(use, w * chord2, jnp.inf))
+        trimmed = jnp.where(jnp.arange(X.shape[0]) < kept, ascending, 0.0)
+        return jnp.sum(trimmed), jnp.all(in_front | ~use)
 
     return jax.vmap(one)(jax.lax.stop_gradient(params))
 
@@ -276,8 +282,9 @@ def solve_overhead_pose(
             best-conditioned of the C(n, 3) triplets (largest bearing-triangle area times
             world-triangle shape; triplets with masked or nearly collinear points are
             skipped; on the paper's 6-point problems as accurate as all 20 triplets),
-            every candidate scored on all unmasked points by the sum of squared chordal
-            bearing errors |q/|q| - b|^2 (~ squared angular error); candidates that put an
+            every candidate scored on the unmasked points by the sum of squared chordal
+            bearing errors |q/|q| - b|^2 (~ squared angular error) without its largest
+            quarter (one outlying sighting does not pick the candidate); candidates that put an
             unmasked point behind the camera (`b . q <= 0`) are discarded; the best is
             polished by at most 5 Levenberg--Marquardt steps on the same error. Works on
             coplanar and near-planar points; no LAPACK. Cost grows as C(n, 3) only in
