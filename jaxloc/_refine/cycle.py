@@ -31,6 +31,7 @@ from .._core.least_squares import (
 )
 from .._core.linalg import gram, spd_inverse
 from .._core.numerics import safe_sqrt
+from .._core.poses import inverse
 from .._core.results import raise_if_failed, RESULTS
 from .._core.robust import robust_loss, RobustLoss
 from .._cycle.estimate import CycleEstimate, RejectedSightings, start_placements
@@ -64,6 +65,8 @@ from .._model.measurements import (
     whitened_with_jacobian,
     without,
 )
+from .._solvers.overhead import solve_overhead_pose
+from .._solvers.overhead_points import overhead_problem
 from .azimuth import azimuth_starts
 
 
@@ -160,11 +163,13 @@ def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, l
 
 
 def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, loss,
-                 to_convergence=False):  # fmt: skip
+                 to_convergence=False, prefer_converged=False):  # fmt: skip
     """Refine every start for a few steps; the one with the lowest cost goes on alone.
     With `to_convergence` (bool) every start is refined to convergence: the azimuth
     starts of a stand-in bearing begin far from every minimum, and measured, the lowest
-    cost after a few steps often led to the wrong one.
+    cost after a few steps often led to the wrong one. With `prefer_converged` (Python
+    bool) the lowest cost among the converged starts wins if any converged (on exact
+    data a start can stall a rounding error below the others without converging).
 
     The phases are jobs of one `lax.while_loop` (one per active start, then the last one)
     so that the kernel and the model are traced and compiled once, and a batch pays only
@@ -185,10 +190,17 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, los
     def masked_chi2(chi2):
         return jnp.where(lanes & jnp.isfinite(chi2), chi2, jnp.inf)
 
+    def best_lane(chi2, converged):
+        chi2 = masked_chi2(chi2)
+        if prefer_converged:
+            done = converged & jnp.isfinite(chi2)
+            chi2 = jnp.where(jnp.any(done) & ~done, jnp.inf, chi2)
+        return jnp.argmin(chi2)
+
     def job(carry):
         j, (T_place_j, T_over_j, steps_j, converged_j, chi2_j) = carry
         last = j == n_active
-        pick = jnp.argmin(masked_chi2(chi2_j[:n_lanes]))
+        pick = best_lane(chi2_j[:n_lanes], converged_j[:n_lanes])
         lane = order[jnp.minimum(j, n_lanes - 1)]
         tp = jnp.where(last, T_place_j[pick], start_place[lane])
         to = jnp.where(last, T_over_j[pick], start_over[lane])
@@ -215,7 +227,7 @@ def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, los
     )
     chi2 = masked_chi2(chi2_all[:n_lanes])
     converged1 = conv_all[:n_lanes]
-    pick = jnp.argmin(chi2)
+    pick = best_lane(chi2_all[:n_lanes], converged1)
     T_place, T_over = T_all[n_lanes], O_all[n_lanes]
     num_steps = steps_all[pick] + steps_all[n_lanes]  # the solution's own steps
     converged = converged1[pick] | conv_all[n_lanes]
@@ -337,6 +349,49 @@ def _reject_and_resolve(T_place, T_over, data, rig, strategy, active, settings, 
     chi2 = whitened_cost(T_place, T_over, without(data, out_m, out_o), rig, strategy)
     rejected = RejectedSightings(out_m, out_o)
     return T_place, T_over, num_steps, converged, rejected, chi2 + runner_up_cost - robust_cost
+
+
+def _overhead_restarts(observations, rejected, T_place, T_over, data, rig, settings, active):
+    """The robust refinement's last stage: the overhead camera solved again by
+    [`jaxloc.solve_overhead_pose`][] from its inlier sightings (less the `rejected`) of
+    the ground placements `T_place` (its best candidate and the distinct runners-up),
+    each refined to convergence by plain least squares on the inliers `data` beside the
+    solution itself; the lowest chi-square wins, and a distinct minimum within
+    `AMBIGUITY_MARGIN` makes the estimate `ambiguous`. Rejecting overhead sightings can
+    leave the camera a second minimum, which the reweighted rounds, started from a
+    closed form the outliers pulled, fall into while the ground placements stay right
+    (measured on the paper's cycles with 5% outlying sightings; restarting before the
+    rejection rounds as well, with the robust cost, picked wrong minima). Returns
+    `(T_place, T_over, num_steps, converged, runner_up_chi2)` as `_multi_start`."""
+    strategy = observations.strategy
+    max_steps, rtol, atol = settings
+    sg = jax.lax.stop_gradient
+    # Not differentiated: the refinement's `implicit_step` carries the derivatives.
+    observations, T_place, T_over, data, rig = sg((observations, T_place, T_over, data, rig))
+    inliers = eqx.tree_at(
+        lambda o: (o.mutual_visible, o.overhead_visible),
+        observations,
+        (observations.mutual_visible & ~rejected.mutual,
+         observations.overhead_visible & ~rejected.overhead),
+    )  # fmt: skip
+    positions = T_place[placement_ids(strategy)][..., 4:]
+    points, bearings, seen = overhead_problem(inliers, positions)
+    solution = solve_overhead_pose(
+        points, bearings, seen, method="robust", throw=False, runner_up=True
+    )
+    candidates = jnp.concatenate([solution.pose.wxyz_xyz[None], solution.alternatives.wxyz_xyz])
+    T_over_starts = jax.vmap(lambda p: inverse(jaxlie.SE3(p)).wxyz_xyz)(candidates)
+    solved = (solution.result == RESULTS.successful) | (solution.result == RESULTS.ambiguous)
+    starts = (
+        jnp.stack([T_place] * (1 + candidates.shape[0])),
+        jnp.concatenate([T_over[None], T_over_starts]),
+        jnp.concatenate([jnp.array([True]), solved[None], solution.alternatives_ok]),
+    )
+    T_place, T_over, num_steps, converged, _, runner_up_chi2 = _multi_start(
+        starts, active, data, rig, strategy, max_steps, rtol, atol, None,
+        to_convergence=True, prefer_converged=True,
+    )  # fmt: skip
+    return T_place, T_over, num_steps, converged, runner_up_chi2
 
 
 class _CycleModel(eqx.Module):
@@ -468,8 +523,12 @@ def refine_solution(
             T_place, T_over, k2, converged, rejected, runner_up_chi2 = _reject_and_resolve(
                 T_place, T_over, data, rig, strategy, active, settings, loss, runner_up_chi2
             )
-            num_steps = num_steps + k2
             data = without(data, rejected.mutual, rejected.overhead)
+            T_place, T_over, k3, converged, restart_chi2 = _overhead_restarts(
+                observations, rejected, T_place, T_over, data, rig, settings, active
+            )
+            num_steps = num_steps + k2 + k3
+            runner_up_chi2 = jnp.minimum(runner_up_chi2, restart_chi2)
             if "runner_up_chi2" in stats:
                 stats["runner_up_chi2"] = runner_up_chi2
         step = implicit_step(
@@ -640,9 +699,14 @@ def refine_cycle(
     again from there by plain least squares on the inliers. The statistic is the
     squared whitened residual at the robust solution in the first round, then the
     standardized one `r_i^T (I - P_i)^-1 r_i` (`P_i` the sighting's leverage) at each
-    plain fit. The estimate, covariance, gates (chi-square and degrees of freedom over
-    the inliers only), `ambiguous` (decided on the difference of the robust costs of the
-    two minima) and gradients (implicit, with the rejections held fixed) are those of
+    plain fit. Last, the overhead camera is solved again from its inlier sightings of
+    the fitted ground placements ([`jaxloc.solve_overhead_pose`][], its best candidate
+    and distinct runners-up), each refined to convergence on the inliers beside the
+    solution: the lowest chi-square wins (rejections can leave the camera a second
+    minimum). The estimate, covariance, gates (chi-square and degrees of freedom over
+    the inliers only), `ambiguous` (a distinct minimum of the last stage within the
+    margin, or the closed form's rival, decided on the difference of the robust costs
+    of the two minima) and gradients (implicit, with the rejections held fixed) are those of
     the maximum-likelihood estimate given the inliers. An outlier in a sighting nothing
     else checks (a robot's pose seen in one image only, whose two sightings fix its
     rotation) cannot be told from its partner; rejecting either leaves that rotation

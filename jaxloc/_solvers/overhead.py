@@ -175,19 +175,30 @@ def _score(params, X, b, w, use):
     return jax.vmap(one)(jax.lax.stop_gradient(params))
 
 
-def _runner_up(params, costs, best, X, w, success):
-    """The best candidate whose camera centre is far from the winner's (another local
-    minimum, e.g. the mirror pose of nearly coplanar points): `(params (7,), ok)`."""
+def _runners_up(params, costs, best, X, w, success):
+    """The `NUM_ALTERNATIVES` best candidates whose camera centres are far from the
+    winner's and from each other's (other local minima, e.g. the mirror pose of nearly
+    coplanar points; with few points seen there can be several): `(params (k, 7),
+    ok (k,))`, best first."""
     Xs = jax.lax.stop_gradient(X)
     centres = jax.vmap(lambda p: inverse(jaxlie.SE3(p)).translation())(params)
     best_centre = jnp.sum(jnp.where(best[:, None], centres, 0.0), axis=0)
     depth2 = jnp.sum(w * jnp.sum((Xs - best_centre[None]) ** 2, -1)) / jnp.maximum(jnp.sum(w), 1)
-    far = jnp.sum((centres - best_centre[None]) ** 2, -1) > _DISTINCT_CENTRE**2 * depth2
-    other_costs = jnp.where(far, costs, jnp.inf)
-    other = jnp.arange(costs.shape[0]) == jnp.argmin(other_costs)
-    runner_up = jnp.sum(jnp.where(other[:, None], params, 0.0), axis=0)
-    ok = success & jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(runner_up))
-    return jnp.where(ok, runner_up, identity_like(params.dtype).wxyz_xyz), ok
+
+    def far_from(centre):
+        return jnp.sum((centres - centre[None]) ** 2, -1) > _DISTINCT_CENTRE**2 * depth2
+
+    available = far_from(best_centre)
+    picks, oks = [], []
+    for _ in range(NUM_ALTERNATIVES):
+        other_costs = jnp.where(available, costs, jnp.inf)
+        other = jnp.arange(costs.shape[0]) == jnp.argmin(other_costs)
+        pick = jnp.sum(jnp.where(other[:, None], params, 0.0), axis=0)
+        ok = success & jnp.isfinite(jnp.min(other_costs)) & jnp.all(jnp.isfinite(pick))
+        picks.append(jnp.where(ok, pick, identity_like(params.dtype).wxyz_xyz))
+        oks.append(ok)
+        available = available & far_from(jnp.sum(jnp.where(other[:, None], centres, 0.0), axis=0))
+    return jnp.stack(picks), jnp.stack(oks)
 
 
 def _other_roots(params, good, best):
@@ -241,9 +252,9 @@ def _robust_pose(X, bw, mask, runner_up: bool = False) -> PoseSolution:
     success = (result == RESULTS.successful) | (result == RESULTS.ambiguous)
     pose = where_pose(success, pose, identity_like(dtype))
     if runner_up:
-        second, second_ok = _runner_up(params, costs, best, X, w, success)
-        roots = jnp.where(three_points, roots, roots.at[0].set(second))
-        roots_ok = jnp.where(three_points, roots_ok, roots_ok.at[0].set(second_ok))
+        others, others_ok = _runners_up(params, costs, best, X, w, success)
+        roots = jnp.where(three_points, roots, others)
+        roots_ok = jnp.where(three_points, roots_ok, others_ok)
     else:
         roots_ok = roots_ok & three_points
     roots_ok = roots_ok & success
@@ -296,10 +307,11 @@ def solve_overhead_pose(
         `refine(solution, points_world, bearings, mask)` with the initial
         [`jaxloc.PoseSolution`][] and the sanitized inputs (`mask` a boolean `(n,)` array),
         it must return a `PoseSolution`. Called before `throw` is applied.
-    - `runner_up`: keyword only, `"robust"` only. Also return the best candidate far
-        from the solution (`alternatives[0]`, `alternatives_ok[0]`): another local
-        minimum, e.g. the mirror pose of nearly coplanar points, for a multi-start
-        refinement (the concurrent strategy uses it).
+    - `runner_up`: keyword only, `"robust"` only. With more than three usable points,
+        `alternatives` (and `alternatives_ok`) are the best candidates far from the
+        solution and from each other, best first: other local minima, e.g. the mirror
+        pose of nearly coplanar points, for a multi-start refinement (the closed forms
+        use `alternatives[0]`, the robust refinement all of them).
 
     **Returns:** a [`jaxloc.PoseSolution`][]. `result` is `successful`, `ambiguous` (exactly
     three usable points and several P3P roots in front of the camera: three points do
