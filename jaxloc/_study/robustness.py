@@ -84,8 +84,10 @@ def corrupted_trial(
     defect (`jaxloc.DEFECTS`, by index), the closed form and the refinement.
 
     **Returns:** `visible` (the required sightings exist), the closed form's and the
-    refinement's status codes (`closed`, `refined`) and position NEES (`closed_nees`,
-    `refined_nees`, `(4,)` each; see [`position_nees`][])."""
+    refinement's status codes (`closed`, `refined`), position NEES (`closed_nees`,
+    `refined_nees`, `(4,)` each; see [`position_nees`][]) and the largest NEES an
+    undetected blunder in one measurement could add, as each estimate reports it
+    (`closed_blunder`, `refined_blunder`: `checks.blunder_nees`)."""
     k_geo, k_sim, k_defect = jr.split(key, 3)
     scenario = random_formation(base, k_geo, spread, turn)
     truth, obs, visible = simulate_cycle(scenario, k_sim)
@@ -99,6 +101,8 @@ def corrupted_trial(
         "closed_nees": position_nees(closed, true_pos),
         "refined": refined.result._value,
         "refined_nees": position_nees(refined, true_pos),
+        "closed_blunder": closed.checks.blunder_nees,
+        "refined_blunder": refined.checks.blunder_nees,
     }
 
 
