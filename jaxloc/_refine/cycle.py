@@ -298,15 +298,31 @@ def sighting_statistics(T_place, T_over, data: CycleData, rig: Rig, strategy: st
     return t[: 6 * steps].reshape(steps, 6), t[6 * steps :].reshape(steps, 3)
 
 
+def _sighting_targets(steps: int) -> np.ndarray:
+    """The robot each sighting of a cycle looks at, `(9 steps,)`: the mutual pairs of
+    every step (`OBSERVER, TARGET` order), then the overhead sightings of every step."""
+    return np.concatenate([np.tile(TARGET, steps), np.tile(np.arange(3), steps)])
+
+
+def _flat_sightings(mutual, overhead):
+    """Masks `(mutual (steps, 3, 3), overhead (steps, 3))` as one `(9 steps,)` vector in
+    the order of [`_sighting_targets`][]."""
+    return jnp.concatenate([mutual[:, OBSERVER, TARGET].reshape(-1), overhead.reshape(-1)])
+
+
+def _sighting_masks(flat):
+    """The inverse of [`_flat_sightings`][]."""
+    steps = flat.shape[0] // 9
+    pairs = flat[: 6 * steps].reshape(steps, 6)
+    mutual = jnp.zeros((steps, 3, 3), bool).at[:, OBSERVER, TARGET].set(pairs)
+    return mutual, flat[6 * steps :].reshape(steps, 3)
+
+
 def _worst(t_m, t_o, limit):
     """One-hot masks `(mutual (steps, 3, 3), overhead (steps, 3))` of the sighting with
     the largest statistic, if that exceeds `limit` (else all False)."""
-    steps = t_m.shape[0]
     t = jnp.concatenate([t_m.reshape(-1), t_o.reshape(-1)])
-    hot = (jnp.arange(t.shape[0]) == jnp.argmax(t)) & (t > limit)
-    pairs = hot[: 6 * steps].reshape(steps, 6)
-    mutual = jnp.zeros((steps, 3, 3), bool).at[:, OBSERVER, TARGET].set(pairs)
-    return mutual, hot[6 * steps :].reshape(steps, 3)
+    return _sighting_masks((jnp.arange(t.shape[0]) == jnp.argmax(t)) & (t > limit))
 
 
 def _reject_and_resolve(T_place, T_over, data, rig, strategy, active, settings, loss,
@@ -399,26 +415,6 @@ def _overhead_restarts(observations, rejected, T_place, T_over, data, rig, setti
         to_convergence=True, prefer_converged=True,
     )  # fmt: skip
     return T_place, T_over, num_steps, converged, runner_up_chi2
-
-
-def _sighting_targets(steps: int) -> np.ndarray:
-    """The robot each sighting of a cycle looks at, `(9 steps,)`: the mutual pairs of
-    every step (`OBSERVER, TARGET` order), then the overhead sightings of every step."""
-    return np.concatenate([np.tile(TARGET, steps), np.tile(np.arange(3), steps)])
-
-
-def _flat_sightings(mutual, overhead):
-    """Masks `(mutual (steps, 3, 3), overhead (steps, 3))` as one `(9 steps,)` vector in
-    the order of [`_sighting_targets`][]."""
-    return jnp.concatenate([mutual[:, OBSERVER, TARGET].reshape(-1), overhead.reshape(-1)])
-
-
-def _sighting_masks(flat):
-    """The inverse of [`_flat_sightings`][]."""
-    steps = flat.shape[0] // 9
-    pairs = flat[: 6 * steps].reshape(steps, 6)
-    mutual = jnp.zeros((steps, 3, 3), bool).at[:, OBSERVER, TARGET].set(pairs)
-    return mutual, flat[6 * steps :].reshape(steps, 3)
 
 
 def truncated_cost(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
@@ -603,6 +599,30 @@ def _statistics(T_place, T_over, data: CycleData, rig, strategy):
     }
 
 
+def _robust_stages(observations, T_place, T_over, data, rig, active, settings, loss,
+                   runner_up_chi2):  # fmt: skip
+    """The robust refinement after its reweighted solve `(T_place, T_over)`: the rejection
+    rounds, the overhead restarts and the swap search. Returns `(T_place, T_over,
+    num_steps, converged, rejected, inliers, runner_up_chi2)`, `inliers` the cycle's
+    `data` less the `rejected` sightings."""
+    strategy = observations.strategy
+    T_place, T_over, k1, converged, rejected, runner_up_chi2 = _reject_and_resolve(
+        T_place, T_over, data, rig, strategy, active, settings, loss, runner_up_chi2
+    )
+    inliers = without(data, rejected.mutual, rejected.overhead)
+    T_place, T_over, k2, converged, restart_chi2 = _overhead_restarts(
+        observations, rejected, T_place, T_over, inliers, rig, settings, active
+    )
+    T_place, T_over, k3, swapped, swap_converged, rejected = _swap_search(
+        T_place, T_over, data, rejected, rig, strategy, settings, active
+    )
+    converged = jnp.where(swapped, swap_converged, converged)
+    inliers = without(data, rejected.mutual, rejected.overhead)
+    # After a swap the earlier minima had other inliers: their costs do not compare.
+    runner_up_chi2 = jnp.where(swapped, jnp.inf, jnp.minimum(runner_up_chi2, restart_chi2))
+    return T_place, T_over, k1 + k2 + k3, converged, rejected, inliers, runner_up_chi2
+
+
 def refine_solution(
     observations: CycleObservations, rig: Rig, estimate: CycleEstimate, *, solver: str,
     max_steps: int, rtol, atol, loss: RobustLoss | None = None,
@@ -627,23 +647,11 @@ def refine_solution(
         )
         stats.update(multi)
         if loss is not None:
-            T_place, T_over, k2, converged, rejected, runner_up_chi2 = _reject_and_resolve(
-                T_place, T_over, data, rig, strategy, active, settings, loss, runner_up_chi2
-            )
-            full = data
-            data = without(data, rejected.mutual, rejected.overhead)
-            T_place, T_over, k3, converged, restart_chi2 = _overhead_restarts(
-                observations, rejected, T_place, T_over, data, rig, settings, active
-            )
-            T_place, T_over, k4, swapped, converged4, rejected = _swap_search(
-                T_place, T_over, full, rejected, rig, strategy, settings, active
-            )
-            converged = jnp.where(swapped, converged4, converged)
-            data = without(full, rejected.mutual, rejected.overhead)
-            num_steps = num_steps + k2 + k3 + k4
-            runner_up_chi2 = jnp.where(
-                swapped, jnp.inf, jnp.minimum(runner_up_chi2, restart_chi2)
-            )
+            T_place, T_over, k, converged, rejected, data, runner_up_chi2 = _robust_stages(
+                observations, T_place, T_over, data, rig, active, settings, loss,
+                runner_up_chi2,
+            )  # fmt: skip
+            num_steps = num_steps + k
             if "runner_up_chi2" in stats:
                 stats["runner_up_chi2"] = runner_up_chi2
         step = implicit_step(
