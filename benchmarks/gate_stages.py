@@ -35,6 +35,7 @@ from jaxloc._model.gates import (  # noqa: E402
     gate_all,
     gate_point,
     gate_rivals,
+    POLISH_STEPS,
 )
 from jaxloc._model.measurements import (  # noqa: E402
     cycle_data,
@@ -104,7 +105,7 @@ def main(argv=None) -> int:
     timed_stage("row_equilibrated_gram", row_equilibrated_gram, (J,), batch, rows)
     P, O, _, _ = timed_stage(
         "polish and evaluation loop",
-        lambda p: _polished(p.T_place, p.T_over, p.data, rig, strategy, True),
+        lambda p: _polished(p.T_place, p.T_over, p.data, rig, strategy, True, POLISH_STEPS),
         (points,), batch, rows,
     )  # fmt: skip
     timed_stage(

@@ -42,7 +42,9 @@ def gate_and_flip(scenario, obs):
     closed = jaxloc.localize_cycle(obs, scenario.rig, throw=False)
     data = cycle_data(obs, scenario.rig)
     point = gates.gate_point(closed, data, strategy)
-    P, O, r, _ = gates._polished(point.T_place, point.T_over, data, scenario.rig, strategy, True)
+    P, O, r, _ = gates._polished(
+        point.T_place, point.T_over, data, scenario.rig, strategy, True, gates.POLISH_STEPS
+    )
     X, decrement = (P, flip_start(P, O)[0]), jnp.inf
     for i in range(gates.MIRROR_STEPS + 1):
         moved, r_flip, _, predicted, _ = gates._gauss_newton_step(X, data, scenario.rig, strategy)

@@ -40,6 +40,8 @@ One mechanism for the closed forms and the refinement alike, at the estimate:
   this gate sees it. A measurement no other controls (redundancy 0) cannot be tested.
 """
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -307,37 +309,69 @@ def observable(covariance: CycleCovariance, size) -> Array:
     )
 
 
-def _gauss_newton_step(X, data: CycleData, rig: Rig, strategy: str):
-    """One undamped Gauss--Newton step from the placements `X = (T_place, T_over)`:
-    `(moved X, r, B, predicted decrease, solved)`, `r, B` of [`whitened_blocks`][] at `X`.
-    A step that is not finite is not taken."""
-    r, B = whitened_blocks(*X, data, rig, strategy)
+def _gauss_newton_move(X, r, B, strategy: str):
+    """One undamped Gauss--Newton step from the placements `X = (T_place, T_over)`, whose
+    whitened residuals and blocks are `r, B`: `(moved X, predicted decrease, solved)`. A
+    step that is not finite is not taken."""
     _, H, g = normal_equations_of_blocks(r, B, strategy)
     delta, solved = solve_spd(H, -g)
     moved = unpack(delta, *X)
     finite = jnp.all(jnp.isfinite(moved[0])) & jnp.all(jnp.isfinite(moved[1]))
     moved = jax.tree.map(lambda a, b: jnp.where(finite, a, b), moved, X)
-    return moved, r, B, -g @ delta, solved
+    return moved, -g @ delta, solved
 
 
-def _polished(T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish: bool):
-    """The point the gates look at and its whitened residuals and blocks: `POLISH_STEPS`
-    Gauss--Newton steps from `(T_place, T_over)` when `polish` (else none), then one
-    evaluation, in one `fori_loop` (one traced copy of the model, differentiable).
-    Returns `(P, O, r, B)`, `r, B` of [`whitened_blocks`][] at `(P, O)`."""
-    at = POLISH_STEPS if polish else 0  # the iteration that evaluates the point
+def _gauss_newton_step(X, data: CycleData, rig: Rig, strategy: str):
+    """[`_gauss_newton_move`][] at `X`: `(moved X, r, B, predicted decrease, solved)`,
+    `r, B` of [`whitened_blocks`][] at `X`."""
+    r, B = whitened_blocks(*X, data, rig, strategy)
+    moved, predicted, solved = _gauss_newton_move(X, r, B, strategy)
+    return moved, r, B, predicted, solved
 
-    def step(i, carry):
-        X, r_at, B_at = carry
-        moved, r, B, _, _ = _gauss_newton_step(X, data, rig, strategy)
-        here = i == at
-        r_at, B_at = jnp.where(here, r, r_at), jnp.where(here, B, B_at)
-        return jax.tree.map(lambda a, b: jnp.where(here, b, a), moved, X), r_at, B_at
 
+def _polished(
+    T_place, T_over, data: CycleData, rig: Rig, strategy: str, polish, steps: int, late=None
+):  # fmt: skip
+    """The point the gates look at and its whitened residuals and blocks: `steps`
+    Gauss--Newton steps from `(T_place, T_over)` where `polish` (a boolean, traced or
+    not: per lane under `vmap`), else none, then one evaluation, in one `fori_loop` (one
+    traced copy of the model, differentiable). Returns `(P, O, r, B)`, `r, B` of
+    [`whitened_blocks`][] at `(P, O)`.
+
+    `late`: `None` or another point `(T_place, T_over, data)` evaluated where it is, in
+    one more iteration after the first point's evaluation; then the result is a pair
+    `((P, O, r, B), (T_place, T_over, r, B))`. Under `vmap` every lane runs the loop's
+    whole length: this fills the lanes of a batch of polished points with evaluations
+    of unpolished ones, at the cost of one iteration instead of one lane each."""
+    at = jnp.where(polish, steps, 0)  # the iteration that evaluates the point
+    length = steps + 1 + (late is not None)
     r0, B0 = jax.eval_shape(lambda: whitened_blocks(T_place, T_over, data, rig, strategy))
     zeros = jnp.zeros(r0.shape, r0.dtype), jnp.zeros(B0.shape, B0.dtype)
-    (P, O), r, B = jax.lax.fori_loop(0, at + 1, step, ((T_place, T_over), *zeros))
-    return P, O, r, B
+
+    def step(i, carry):
+        X, r_at, B_at = carry[:3]
+        evaluate = (X, data) if late is None else jax.tree.map(
+            lambda a, b: jnp.where(i == steps + 1, b, a), (X, data), ((late[0], late[1]), late[2])
+        )  # fmt: skip
+        r, B = whitened_blocks(*evaluate[0], evaluate[1], rig, strategy)
+        # `i` is the same in every lane: the evaluations take no step.
+        moved = jax.lax.cond(
+            i < steps, lambda: _gauss_newton_move(X, r, B, strategy)[0], lambda: X
+        )
+        here = i == at
+        r_at, B_at = jnp.where(here, r, r_at), jnp.where(here, B, B_at)
+        X = jax.tree.map(lambda a, b: jnp.where(i >= at, b, a), moved, X)
+        if late is None:
+            return X, r_at, B_at
+        last = i == steps + 1
+        return X, r_at, B_at, jnp.where(last, r, carry[3]), jnp.where(last, B, carry[4])
+
+    carry = ((T_place, T_over), *zeros) + (zeros if late is not None else ())
+    out = jax.lax.fori_loop(0, length, step, carry)
+    (P, O), r, B = out[:3]
+    if late is None:
+        return P, O, r, B
+    return (P, O, r, B), (late[0], late[1], *out[3:])
 
 
 def _second_minimum(P, O, data: CycleData, rig: Rig, strategy: str):
@@ -407,8 +441,8 @@ def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: 
               solver_result: RESULTS, polished: bool, final_poses):  # fmt: skip
     """The gates of an estimate `(T_place, T_over)` with end-of-cycle poses `final_poses`,
     evaluated at `(P, O)` (whitened residuals `r` and blocks `B` there): the estimate
-    itself, or its polished optimum when `polished` (see [`gate_all`][]). Returns
-    `(result, checks, covariance)`."""
+    itself, or its polished optimum when `polished` (a boolean, traced or not; see
+    [`gate_all`][]). Returns `(result, checks, covariance)`."""
     dtype = T_place.dtype
     chi2, H, g = normal_equations_of_blocks(r, B, strategy)
     J = unknowns_jacobian(B, strategy)
@@ -428,12 +462,12 @@ def _gates_at(P, O, r, B, T_place, T_over, data: CycleData, rig: Rig, strategy: 
     ml = covariance_of_tangent(ml_covariance, ok_information, P, O, strategy, position_jacobian)
     offset = -step
     dp, dr = final_offsets(offset, P, O, strategy)
-    if polished:
+    if polished is not False:
         own_dp, own_dr = _pose_differences(final_poses, end_poses(P, O, strategy))
-        offset = offset + pack(T_place, T_over, P, O)
+        offset = offset + jnp.where(polished, pack(T_place, T_over, P, O), 0.0)
         moved = jnp.asarray(np.r_[True, placement_ids(strategy)[-1] > 0])[:, None]
-        dp = dp + jnp.where(moved, own_dp, 0.0)
-        dr = dr + jnp.where(moved, own_dr, 0.0)
+        dp = dp + jnp.where(moved & polished, own_dp, 0.0)
+        dr = dr + jnp.where(moved & polished, own_dr, 0.0)
     covariance = with_offset(ml, offset, dp, dr)
     limit = chi2_limit(dof, data.num_sightings, data.num_odometry, rig.noise_model, dtype)
     is_observable = observable(ml, formation_size(P)) & (dof > 0)
@@ -513,61 +547,109 @@ def gate_rivals(estimate: CycleEstimate, point: GatePoint, strategy: str):
     return start_placements(estimate.alternatives, estimate.scales, strategy, point.T_place)
 
 
-def gate_all(points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool, rivals=None):
+def _evaluate(points: list[GatePoint], rivals, per_point: list[bool], rig: Rig, strategy: str):
+    """The [`_polished`][] evaluations of [`gate_all`][]: `(P, O, r, B)` of every point,
+    stacked in the points' order, and `(r, O)` of every rival start, in the rivals'
+    order. One `vmap` of one loop: the polished points and the rivals are its lanes;
+    the points that are not polished are evaluated in one more iteration of the first
+    lanes (in lanes of their own only where they outnumber the lanes)."""
+    stack = lambda ps: jax.tree.map(lambda *x: jnp.stack(x), *ps)  # noqa: E731
+    concat = lambda ps: jax.tree.map(lambda *x: jnp.concatenate(x), *ps)  # noqa: E731
+    polished = [p for p, on in zip(points, per_point) if on]
+    late = [p for p, on in zip(points, per_point) if not on]
+    rival_points = [_rival_points(p, r) for p, r in zip(points, rivals) if r is not None]
+
+    def run(p: GatePoint, on, steps: int, q: GatePoint | None = None):
+        second = None if q is None else (q.T_place, q.T_over, q.data)
+        return _polished(p.T_place, p.T_over, p.data, rig, strategy, on, steps, second)
+
+    if not polished:
+        out = late_out = jax.vmap(lambda p: run(p, False, 0))(stack(late))
+    elif not late:
+        first = concat([stack(polished)] + rival_points)
+        out = jax.vmap(lambda p: run(p, True, POLISH_STEPS))(first)
+    else:
+        first = concat([stack(polished)] + rival_points)
+        lanes = first.T_over.shape[0]
+        width = max(lanes, len(late))
+        if width > lanes:  # lanes with an evaluation only: a stand-in first point, not polished
+            first = concat([first, stack(late[: width - lanes])])
+        fillers = [jax.tree.map(lambda x, j=j: x[j], first) for j in range(len(late), width)]
+        second = stack(late + fillers)
+        on = np.arange(width) < lanes
+        out, late_out = jax.vmap(lambda p, q, on: run(p, on, POLISH_STEPS, q))(first, second, on)
+    lanes = len(polished) + sum(r.T_over.shape[0] for r in rival_points)
+    rival_r, rival_O = out[2][len(polished) : lanes], out[1][len(polished) : lanes]
+    taken = {True: 0, False: 0}
+    rows = []
+    for on in per_point:
+        rows.append(jax.tree.map(lambda x, j=taken[on]: x[j], out if on else late_out))
+        taken[on] += 1
+    P, O, r, B = (jnp.stack(x) for x in zip(*rows))
+    return P, O, r, B, rival_r, rival_O
+
+
+def gate_all(
+    points: list[GatePoint], rig: Rig, strategy: str, *, polish: bool | Sequence[bool],
+    rivals=None,
+):  # fmt: skip
     """Gate every point, as one `vmap`: a list of `(result, checks, covariance)`, one per
     point. `result` is the point's `solver_result` when that is a failure; else
     `unobservable` or `inconsistent_fit` when a gate fails, else `successful`.
 
-    With `polish` (for estimates that are not converged refinements, e.g. closed forms)
-    the gates look at the point `POLISH_STEPS` Gauss--Newton steps away, the
-    maximum-likelihood optimum to well within its uncertainty. The covariance is the
+    Where `polish` (one boolean for every point, or one per point) is true, e.g. for
+    closed forms, the gates look at the point `POLISH_STEPS` Gauss--Newton steps away,
+    the maximum-likelihood optimum to well within its uncertainty; elsewhere (a converged
+    refinement, the true poses of a bound) at the point itself. The covariance is the
     estimate's own, to first order: the maximum-likelihood estimator's `(J^T J)^-1` there
     plus `d d^T`, `d` the estimate's offset from that point (its own end-of-cycle poses
     against the optimum's: a closed form solves a stationary robot's pose again at every
     step) and from the optimum of the model linearized there (zero at a converged
     refinement). `rivals`: per point, `None` or other starts `(T_place (k, placements,
     7), T_over (k, 7), active (k,))` (a closed form's other local minima, see
-    [`gate_rivals`][]); polished too, a distinct one that fits almost as well makes the
-    estimate `ambiguous`. So does, for every point, a second minimum
-    ([`jaxloc._model.mirrors`][]): the mirror of a moved placement the overhead camera
-    does not see, or the overhead camera's planar flip when a sighting is missing, when
-    it is distinct from the point. The polish, the gates' Jacobian and the rivals'
+    [`gate_rivals`][]; only for polished points); polished too, a distinct one that fits
+    almost as well makes the estimate `ambiguous`. So does, for every point, a second
+    minimum ([`jaxloc._model.mirrors`][]): the mirror of a moved placement the overhead
+    camera does not see, or the overhead camera's planar flip when a sighting is missing,
+    when it is distinct from the point. The polish, the gates' Jacobian and the rivals'
     polish come from one Gauss--Newton `fori_loop`, mapped over the points and the
-    rivals together; the second minima from an early-exit `while_loop` over the points
-    alone, which a batch with nothing to look for skips."""
-    rivals = rivals or [None] * len(points)
-    if not polish and any(r is not None for r in rivals):
-        raise ValueError("gate_all: rivals are compared at their polished optima; pass polish=True")
+    rivals together (a point that is not polished is evaluated at its first iteration);
+    the second minima from an early-exit `while_loop` over the points alone, which a
+    batch with nothing to look for skips. Gating every estimate of a trial in one call
+    traces each of these once."""
     n = len(points)
+    rivals = rivals or [None] * n
+    per_point = [bool(polish)] * n if isinstance(polish, bool) else [bool(p) for p in polish]
+    if len(per_point) != n:
+        raise ValueError(f"gate_all: {len(per_point)} polish flags for {n} points")
+    if any(r is not None and not p for r, p in zip(rivals, per_point)):
+        raise ValueError("gate_all: rivals are compared at their polished optima; polish them")
     stacked = jax.tree.map(lambda *x: jnp.stack(x), *points)
-    rival_points = [_rival_points(p, r) for p, r in zip(points, rivals) if r is not None]
-    lanes = jax.tree.map(lambda *x: jnp.concatenate(x), stacked, *rival_points)
-
-    def polished(p: GatePoint):
-        return _polished(p.T_place, p.T_over, p.data, rig, strategy, polish)
-
-    P, O, r, B = jax.vmap(polished)(lanes)
+    P, O, r, B, rival_r, rival_O = _evaluate(points, rivals, per_point, rig, strategy)
     mirror = jax.vmap(lambda P, O, data: _second_minimum(P, O, data, rig, strategy))(
-        P[:n], O[:n], stacked.data
+        P, O, stacked.data
     )
 
-    def one(p: GatePoint, P, O, r, B):
+    uniform = all(per_point) or not any(per_point)
+
+    def one(p: GatePoint, P, O, r, B, polished):
+        polished = per_point[0] if uniform else polished
         return _gates_at(
-            P, O, r, B, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polish,
+            P, O, r, B, p.T_place, p.T_over, p.data, rig, strategy, p.solver_result, polished,
             p.final_poses,
         )  # fmt: skip
 
-    out = jax.vmap(one)(stacked, P[:n], O[:n], r[:n], B[:n])
-    rival_chi2 = jnp.sum(r[n:] ** 2, axis=-1)
-    gates, lane = [], n
+    out = jax.vmap(one)(stacked, P, O, r, B, np.asarray(per_point))
+    rival_chi2 = jnp.sum(rival_r**2, axis=-1)
+    gates, lane = [], 0
     for i, rival in enumerate(rivals):
         result, checks, covariance = jax.tree.map(lambda x, i=i: x[i], out)
         runner_up = mirror[i]
         if rival is not None:
             k = rival[0].shape[0]
-            chi2 = rival_chi2[lane - n : lane - n + k]
+            chi2 = rival_chi2[lane : lane + k]
             runner_up = jnp.minimum(
-                runner_up, _runner_up_chi2(chi2, O[lane : lane + k], rival[2], O[i])
+                runner_up, _runner_up_chi2(chi2, rival_O[lane : lane + k], rival[2], O[i])
             )
             lane += k
         result = mark_ambiguous(result, checks.chi2, runner_up)

@@ -137,9 +137,9 @@ def estimate_all(
     """Every requested estimator on the same observations (shared ground chain), gated
     together: the closed forms, the refinement started from the robust closed form, and
     (with `truth`) the Cramér–Rao bound at the true poses of the sightings present, in
-    one `vmap` of the gates (one traced copy of the gates and of the covariance per kind:
-    polished for the closed forms, at the point for the converged refinement and the
-    true poses).
+    one `vmap` of the gates (one traced copy of the gates and of the covariance: polished
+    for the closed forms, at the point for the converged refinement and the true
+    poses).
 
     **Returns:** `(estimates, bound)`: the estimates in the order of `methods`, and the
     bound's [`jaxloc.CycleCovariance`][] (`None` without `truth`)."""
@@ -159,10 +159,8 @@ def estimate_all(
     closed = [m for m in estimates if m not in REFINEMENTS]
     points = [gate_point(estimates[m], data, strategy) for m in closed]
     rivals = [gate_rivals(estimates[m], p, strategy) for m, p in zip(closed, points)]
-    for name, gate in zip(closed, gate_all(points, rig, strategy, polish=True, rivals=rivals)):
-        estimates[name] = gated(estimates[name], gate)
     # A converged refinement and the true poses are gated where they are.
-    points = [
+    points += [
         gate_point(estimates[m], refined_data(data, estimates[m]), strategy) for m in refinements
     ]
     if truth is not None:
@@ -172,9 +170,13 @@ def estimate_all(
         )
         final = end_poses(T_place, T_over, strategy)
         points.append(GatePoint(T_place, T_over, final, bound_data, RESULTS.successful))
-    gates = gate_all(points, rig, strategy, polish=False) if points else []
-    for i, m in enumerate(refinements):
-        estimates[m] = finish_refinement(estimates[m], runner_up[m], gates[i])
+    polish = [i < len(closed) for i in range(len(points))]
+    rivals += [None] * (len(points) - len(closed))
+    gates = gate_all(points, rig, strategy, polish=polish, rivals=rivals)
+    for name, gate in zip(closed, gates):
+        estimates[name] = gated(estimates[name], gate)
+    for m, gate in zip(refinements, gates[len(closed):]):
+        estimates[m] = finish_refinement(estimates[m], runner_up[m], gate)
     bound = gates[-1][2] if truth is not None else None
     return [estimates[m] for m in methods], bound
 
