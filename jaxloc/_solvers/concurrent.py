@@ -273,11 +273,15 @@ def _fit_concurrent_scales(obs: CycleObservations, P: Float[Array, "3 3 3"]):
     return scales, ok, rms, runner_up, runner_up_ok
 
 
-def concurrent_formations(observations: CycleObservations):
+def concurrent_formations(observations: CycleObservations, bearings=None):
     """The concurrent closed form: `(T_world_body, scales, scale_ok, odometry_rms,
     runner_up_scales, runner_up_ok, mutual_solutions)`, the first a `jaxlie.SE3` of batch
-    `(3, 3)` at metric scale in `W` (C1's frame), `scales` `(3,)` one per formation."""
-    sols = mutual_steps(cycle_bearings(observations)[0], reference_robots("concurrent"))
+    `(3, 3)` at metric scale in `W` (C1's frame), `scales` `(3,)` one per formation.
+    `bearings`: the mutual bearings as [`cycle_bearings`][] fills them, if the caller has
+    them already."""
+    if bearings is None:
+        bearings = cycle_bearings(observations)[0]
+    sols = mutual_steps(bearings, reference_robots("concurrent"))
     P = jnp.stack([s.T_ref_body.translation() for s in sols])
     scales, ok, rms, runner_up, runner_up_ok = _fit_concurrent_scales(observations, P)
     T = jnp.stack([scale_translations(s.T_ref_body, c).wxyz_xyz for s, c in zip(sols, scales)])

@@ -32,15 +32,18 @@ from .sequential import sequential_formations
 METHODS = ("robust", "paper")
 
 
-def _ground_formations(observations: CycleObservations):
-    """The strategy's closed form for the ground robots: `(T_world_body, scales,
-    scale_ok, odometry_rms, mutual_result, min_angle, runner_up)`, `runner_up` the
-    concurrent strategy's `(scales, ok)` or `None`."""
+def _ground_formations(observations: CycleObservations, bearings):
+    """The strategy's closed form for the ground robots from the mutual `bearings` as
+    [`cycle_bearings`][] fills them: `(T_world_body, scales, scale_ok, odometry_rms,
+    mutual_result, min_angle, runner_up)`, `runner_up` the concurrent strategy's
+    `(scales, ok)` or `None`."""
     if observations.strategy == "sequential":
-        T, scales, scale_ok, rms, sols = sequential_formations(observations)
+        T, scales, scale_ok, rms, sols = sequential_formations(observations, bearings)
         runner_up = None
     else:
-        T, scales, scale_ok, rms, second, second_ok, sols = concurrent_formations(observations)
+        T, scales, scale_ok, rms, second, second_ok, sols = concurrent_formations(
+            observations, bearings
+        )
         runner_up = (second, second_ok, runner_up_positions(second, sols))
     mutual_result = sols[0].result
     for s in sols[1:]:
@@ -124,12 +127,12 @@ def closed_forms(
     unknown = [m for m in methods if m not in METHODS]
     if unknown or not methods:
         raise ValueError(f"`method` must be one of {METHODS}; got {methods!r}.")
+    filled, free, unresolved, stand_in = cycle_bearings(observations)
     T, scales, scale_ok, odo_rms, mutual_result, min_angle, runner_up = _ground_formations(
-        observations
+        observations, filled
     )
     points, bearings, mask = overhead_problem(observations, T.translation())
     odometry = _observations_ok(observations)
-    _, free, unresolved, stand_in = cycle_bearings(observations)
     good = mutual_result == RESULTS.successful
     stand_in = stand_in & good & ~free
     mutual_result = RESULTS.where(good & unresolved, RESULTS.too_few_points, mutual_result)

@@ -44,11 +44,12 @@ def scale_translations(T: jaxlie.SE3, scale) -> jaxlie.SE3:
     return jaxlie.SE3(T.wxyz_xyz.at[..., 4:].multiply(scale))
 
 
-def _chain(observations: CycleObservations):
-    """Poses of every step in step-0 units (circumdiameter of the first formation = 1)."""
+def _chain(bearings: Float[Array, "steps 3 3 3"]):
+    """Poses of every step in step-0 units (circumdiameter of the first formation = 1),
+    from the cycle's mutual bearings as [`cycle_bearings`][] fills them."""
     refs = reference_robots("sequential")
     movers = moving_robot("sequential")
-    sols = mutual_steps(cycle_bearings(observations)[0], refs)
+    sols = mutual_steps(bearings, refs)
     T = [sols[0].T_ref_body]
     for k in range(1, 4):
         ref, mover = refs[k], int(movers[k - 1])
@@ -76,11 +77,12 @@ def _fit_scale(observations: CycleObservations, lengths: Float[Array, " moves"])
     return scale, ok, rms
 
 
-def sequential_formations(observations: CycleObservations):
+def sequential_formations(observations: CycleObservations, bearings=None):
     """The sequential closed form: `(T_world_body, scales, scale_ok, odometry_rms,
     mutual_solutions)`, the first a `jaxlie.SE3` of batch `(4, 3)` at metric scale in
-    `W`, `scales` `(4,)` (all equal)."""
-    T, sols = _chain(observations)
+    `W`, `scales` `(4,)` (all equal). `bearings`: the mutual bearings as
+    [`cycle_bearings`][] fills them, if the caller has them already."""
+    T, sols = _chain(cycle_bearings(observations)[0] if bearings is None else bearings)
     positions = jnp.stack([Tk.translation() for Tk in T])
     scale, ok, rms = _fit_scale(observations, move_lengths(positions, "sequential"))
     T = jnp.stack([scale_translations(Tk, scale).wxyz_xyz for Tk in T])
