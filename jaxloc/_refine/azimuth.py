@@ -8,7 +8,7 @@ unknown angle, and the joint fit has a discrete set of minima over that angle (e
 the overhead camera's ray to `b` meets `b`'s circle about the line). The refinement
 starts from the closed form's formation turned by evenly spaced angles, each with the
 closed form's overhead camera and with its planar flip, refines every start to
-convergence and keeps the best fit (`jaxloc._refine.cycle._multi_start`); two distinct
+convergence and keeps the best fit (`jaxloc._refine.kernel.multi_start`); two distinct
 minima that fit alike are `ambiguous`.
 """
 

@@ -18,7 +18,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
@@ -27,12 +26,9 @@ from .._core.least_squares import (
     implicit_step,
     jvp_nonzero,
     KernelLevenbergMarquardt,
-    levenberg_marquardt,
     optx_solver,
 )
-from .._core.linalg import gram, spd_inverse
 from .._core.numerics import safe_sqrt
-from .._core.poses import inverse
 from .._core.results import raise_if_failed, RESULTS
 from .._core.robust import robust_loss, RobustLoss
 from .._cycle.estimate import CycleEstimate, RejectedSightings, start_placements
@@ -42,63 +38,35 @@ from .._cycle.rig import Rig
 from .._model.covariance import estimate_placements
 from .._model.gates import (
     AMBIGUITY_MARGIN,
-    DISTINCT_MINIMUM,
     gate_all,
     gate_point,
     gated,
     mark_ambiguous,
-    nonsingular_information,
-    SIGHTING_LIMIT,
     STAND_IN_MARGIN,
-    standardized_squares,
 )
 from .._model.measurements import (
     cycle_data,
     CycleData,
     normal_equations,
-    OBSERVER,
     pack,
     predict,
-    sighting_squares,
-    TARGET,
     unpack,
     whitened,
-    whitened_cost,
     whitened_with_jacobian,
     without,
 )
-from .._solvers.overhead import solve_overhead_pose
-from .._solvers.overhead_points import overhead_problem
 from .azimuth import azimuth_starts
+from .kernel import cycle_lm, multi_start, NEGLIGIBLE_DECREASE, position_scale, retract
+from .robust import robust_stages
 
 
 #: Solvers of [`jaxloc.refine_cycle`][]: jaxloc's least-squares kernel, or optimistix's
 #: Levenberg--Marquardt / Gauss--Newton on the same residuals.
 CYCLE_SOLVERS = ("lm", "optx-kernel", "optx-lm", "optx-gn")
-#: Predicted decrease of the whitened cost (chi-square units) below which a step of the
-#: kernel counts as converged, at the default tolerances (`rtol = atol = 1e-6`); it scales
-#: with the square of the tighter one.
-_NEGLIGIBLE_DECREASE = 1e-4
-#: Rounds of outlier rejection after a robust refinement, each rejecting at most one
-#: sighting and solving the inliers again (see `_reject_and_resolve`): at most this many
-#: outliers per cycle (5% of the sequential cycle's 36 sightings are 1.8 on average,
-#: more than 5 in 1% of the cycles).
-REJECTION_ROUNDS = 5
-#: Floor of `1 - leverage` of a sighting's residual in the rejection test (a sighting the
-#: fit leans on entirely is tested as if 1% of its noise showed).
-LEVERAGE_FLOOR = 1e-2
 #: The robust stage's tolerances relative to the refinement's: it only has to tell the
 #: outliers apart (plain least squares on the inliers then converges fully), and
 #: reweighted least squares converges linearly.
 _ROBUST_TOLERANCE_FACTOR = 10.0
-#: Steps of a multi-start refinement's first phase, where every start is refined (the
-#: whole refinement still takes at most `max_steps`).
-_MULTI_START_STEPS = 6
-#: Least-squares steps that screen each swap of the robust refinement's swap search, and
-#: the decrease of the truncated cost (chi-square units) a swap must bring (see
-#: `_swap_search`).
-_SWAP_SCREEN_STEPS = 4
-_SWAP_MARGIN = 1.0
 
 
 @ft.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -145,106 +113,6 @@ def _implicit_residuals(x, theta, args, strategy):
     return _cycle_residuals(strategy, theta, x[0], x[1], *args)
 
 
-def _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, loss=None):
-    """The least-squares kernel on a cycle: `(T_place, T_over, num_steps, converged,
-    cost)`, `cost` the (robust) cost at the solution (0 for an inactive problem).
-    Residuals are whitened, so the predicted decrease is in chi-square units (see
-    `levenberg_marquardt`'s `decrease_tol`); the damping starts at 1e-2, a prior
-    precision of 100 per m^2 / rad^2. A robust `loss` makes each model evaluation one
-    reweighting of the iteratively reweighted least squares (`normal_equations`)."""
-    n = T0_place.shape[0]
-    out = levenberg_marquardt(
-        lambda x: normal_equations(x[0], x[1], data, rig, strategy, loss),
-        _retract,
-        _position_scale,
-        (T0_place, T0_over),
-        num_unknowns=6 * n,
-        max_steps=max_steps,
-        rtol=rtol,
-        atol=atol,
-        active=active,
-        lam0=1e-2,
-        decrease_tol=_NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2,
-    )
-    return out.x[0], out.x[1], out.num_steps, out.converged, out.normal.cost
-
-
-def _multi_start(starts, active, data, rig, strategy, max_steps, rtol, atol, loss,
-                 to_convergence=False, prefer_converged=False):  # fmt: skip
-    """Refine every start for a few steps; the one with the lowest cost goes on alone.
-    With `to_convergence` (bool) every start is refined to convergence: the azimuth
-    starts of a stand-in bearing begin far from every minimum, and measured, the lowest
-    cost after a few steps often led to the wrong one. With `prefer_converged` (Python
-    bool) the lowest cost among the converged starts wins if any converged (on exact
-    data a start can stall a rounding error below the others without converging).
-
-    The phases are jobs of one `lax.while_loop` (one per active start, then the last one)
-    so that the kernel and the model are traced and compiled once, and a batch pays only
-    for the starts its problems have (the azimuth starts exist only with a stand-in).
-    Returns `(T_place, T_over, num_steps, converged, picked, runner_up_chi2)`: the
-    solution, the start it came from (0 = the estimate's own poses), and the cost of
-    another converged minimum distinct from it (some robot placement or the overhead
-    camera more than `DISTINCT_MINIMUM` away; `inf` if none)."""
-    start_place, start_over, lanes = starts
-    lanes = lanes & active
-    dtype = start_place.dtype
-    n_lanes = lanes.shape[0]
-    n_first = min(max_steps, _MULTI_START_STEPS)
-    order = jnp.argsort(~lanes, stable=True)  # the active starts first
-    n_active = jnp.sum(lanes)
-    first_budget = jnp.where(to_convergence, max_steps, n_first)
-
-    def masked_chi2(chi2):
-        return jnp.where(lanes & jnp.isfinite(chi2), chi2, jnp.inf)
-
-    def best_lane(chi2, converged):
-        chi2 = masked_chi2(chi2)
-        if prefer_converged:
-            done = converged & jnp.isfinite(chi2)
-            chi2 = jnp.where(jnp.any(done) & ~done, jnp.inf, chi2)
-        return jnp.argmin(chi2)
-
-    def job(carry):
-        j, (T_place_j, T_over_j, steps_j, converged_j, chi2_j) = carry
-        last = j == n_active
-        pick = best_lane(chi2_j[:n_lanes], converged_j[:n_lanes])
-        lane = order[jnp.minimum(j, n_lanes - 1)]
-        tp = jnp.where(last, T_place_j[pick], start_place[lane])
-        to = jnp.where(last, T_over_j[pick], start_over[lane])
-        act = jnp.where(last, active & ~converged_j[pick], lanes[lane])
-        budget = jnp.where(last, max_steps - n_first, first_budget)
-        tp, to, k, conv, chi2 = _lm(tp, to, data, rig, strategy, budget, rtol, atol, act, loss)
-        slot = jnp.where(last, n_lanes, lane)
-        slots = (
-            T_place_j.at[slot].set(tp), T_over_j.at[slot].set(to), steps_j.at[slot].set(k),
-            converged_j.at[slot].set(conv), chi2_j.at[slot].set(chi2),
-        )  # fmt: skip
-        return j + 1, slots
-
-    n_jobs = n_lanes + 1
-    slots = (
-        jnp.zeros((n_jobs,) + start_place.shape[1:], dtype),
-        jnp.zeros((n_jobs,) + start_over.shape[1:], dtype),
-        jnp.zeros(n_jobs, jnp.int32),
-        jnp.zeros(n_jobs, bool),
-        jnp.full(n_jobs, jnp.inf, dtype),
-    )
-    _, (T_all, O_all, steps_all, conv_all, chi2_all) = jax.lax.while_loop(
-        lambda carry: carry[0] <= n_active, job, (jnp.array(0, n_active.dtype), slots)
-    )
-    chi2 = masked_chi2(chi2_all[:n_lanes])
-    converged1 = conv_all[:n_lanes]
-    pick = best_lane(chi2_all[:n_lanes], converged1)
-    T_place, T_over = T_all[n_lanes], O_all[n_lanes]
-    num_steps = steps_all[pick] + steps_all[n_lanes]  # the solution's own steps
-    converged = converged1[pick] | conv_all[n_lanes]
-    positions = jnp.concatenate([T_all[..., 4:], O_all[:, None, 4:]], axis=1)
-    gaps = jnp.sum((positions[:n_lanes] - positions[n_lanes][None]) ** 2, axis=-1)
-    distinct = jnp.max(gaps, axis=-1) > DISTINCT_MINIMUM**2
-    runner_up_chi2 = jnp.min(jnp.where(converged1 & distinct, chi2, jnp.inf))
-    return T_place, T_over, num_steps, converged, pick, runner_up_chi2
-
-
 def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, settings, loss):
     """The default solver: one start, or the multi-start when the estimate carries other
     starts (its `alternatives`, and the azimuths of its `stand_in` bearings). Returns
@@ -261,7 +129,7 @@ def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, set
     if estimate.stand_in is not None:
         others.append(azimuth_starts(T0_place, T0_over, estimate.stand_in, strategy))
     if not others:
-        out = _lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, loss)
+        out = cycle_lm(T0_place, T0_over, data, rig, strategy, max_steps, rtol, atol, active, loss)
         return *out[:4], {}, jnp.array(jnp.inf, T0_place.dtype)
     others = jax.lax.stop_gradient(others)
     starts = (
@@ -270,231 +138,11 @@ def _kernel_refine(estimate, T0_place, T0_over, data, rig, strategy, active, set
         jnp.concatenate([jnp.ones(1, bool)] + [o[2] for o in others]),
     )
     to_convergence = False if estimate.stand_in is None else jnp.any(estimate.stand_in)
-    T_place, T_over, num_steps, converged, picked, runner_up_chi2 = _multi_start(
+    T_place, T_over, num_steps, converged, picked, runner_up_chi2 = multi_start(
         starts, active, data, rig, strategy, max_steps, rtol, atol, loss, to_convergence
     )
     stats = {"start_picked": picked, "runner_up_chi2": runner_up_chi2}
     return T_place, T_over, num_steps, converged, stats, runner_up_chi2
-
-
-def sighting_statistics(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
-    """Each pixel sighting's standardized squared residual `r_i^T (I - P_i)^-1 r_i` at a
-    least-squares fit (Baarda's w-test, per two-row block), `(mutual (steps, 6 pairs),
-    overhead (steps, 3))`: `r_i` its two whitened residuals, `P_i = J_i H^-1 J_i^T` its
-    leverage (`H = J^T J`). A fit absorbs part of each sighting's noise (on the paper's
-    cycle about one of its two residuals, on average); standardized, a clean sighting's
-    statistic has the distribution of its noise's squared norm, so one threshold
-    (`SIGHTING_LIMIT`) tests every sighting at the same false-alarm rate, and an outlier
-    on a sighting the fit leans on is not hidden. `1 - leverage` is floored at
-    `LEVERAGE_FLOOR`; where `H` is singular the plain squares are returned."""
-    steps = data.mutual_pixels.shape[0]
-    r, J = whitened_with_jacobian(T_place, T_over, data, rig, strategy)
-    J = J[:, 1:].reshape(r.shape[0], -1)
-    H_inv, ok = spd_inverse(gram(J))
-    n_s = 9 * steps
-    t, _ = standardized_squares(r, J, H_inv, n_s, LEVERAGE_FLOOR)
-    rb = r[: 2 * n_s].reshape(n_s, 2)
-    t = jnp.where(ok, t, jnp.sum(rb * rb, axis=-1))
-    return t[: 6 * steps].reshape(steps, 6), t[6 * steps :].reshape(steps, 3)
-
-
-def _sighting_targets(steps: int) -> np.ndarray:
-    """The robot each sighting of a cycle looks at, `(9 steps,)`: the mutual pairs of
-    every step (`OBSERVER, TARGET` order), then the overhead sightings of every step."""
-    return np.concatenate([np.tile(TARGET, steps), np.tile(np.arange(3), steps)])
-
-
-def _flat_sightings(mutual, overhead):
-    """Masks `(mutual (steps, 3, 3), overhead (steps, 3))` as one `(9 steps,)` vector in
-    the order of [`_sighting_targets`][]."""
-    return jnp.concatenate([mutual[:, OBSERVER, TARGET].reshape(-1), overhead.reshape(-1)])
-
-
-def _sighting_masks(flat):
-    """The inverse of [`_flat_sightings`][]."""
-    steps = flat.shape[0] // 9
-    pairs = flat[: 6 * steps].reshape(steps, 6)
-    mutual = jnp.zeros((steps, 3, 3), bool).at[:, OBSERVER, TARGET].set(pairs)
-    return mutual, flat[6 * steps :].reshape(steps, 3)
-
-
-def _worst(t_m, t_o, limit):
-    """One-hot masks `(mutual (steps, 3, 3), overhead (steps, 3))` of the sighting with
-    the largest statistic, if that exceeds `limit` (else all False)."""
-    t = jnp.concatenate([t_m.reshape(-1), t_o.reshape(-1)])
-    return _sighting_masks((jnp.arange(t.shape[0]) == jnp.argmax(t)) & (t > limit))
-
-
-def _reject_and_resolve(T_place, T_over, data, rig, strategy, active, settings, loss,
-                        runner_up_cost):  # fmt: skip
-    """The robust refinement's second stage, from its converged solution: in each of
-    `REJECTION_ROUNDS` rounds the one sighting with the largest statistic above
-    `SIGHTING_LIMIT` is left out and the cycle solved again from there by plain least
-    squares on the inliers (the maximum-likelihood estimate given them). The statistic
-    is the squared whitened residual at the robust solution (first round: an outlier it
-    downweighted shows whole), then the standardized residual at each plain fit
-    ([`sighting_statistics`][]). One at a time, as in data snooping: an outlier inflates
-    the residuals of the sightings that share its unknowns (the other sighting in the
-    same image), which fall back once it is gone; a wrong minimum that only many
-    rejections would make consistent stays `inconsistent_fit`. Returns `(T_place,
-    T_over, num_steps, converged, rejected, runner_up_chi2)`: the runner-up's cost moved
-    to the inliers' chi-square by the difference of the two robust costs (what decides
-    `ambiguous`)."""
-    max_steps, rtol, atol = settings
-    sg = jax.lax.stop_gradient
-    T_place, T_over, data, rig = sg((T_place, T_over, data, rig))
-    steps = data.mutual_pixels.shape[0]
-    limit = SIGHTING_LIMIT[rig.noise_model]
-    robust_cost = whitened_cost(T_place, T_over, data, rig, strategy, loss)
-
-    def round_(carry, index):
-        T_place, T_over, out_m, out_o, num_steps, converged = carry
-        inliers = without(data, out_m, out_o)
-        s_m, s_o = sighting_squares(whitened(T_place, T_over, inliers, rig, strategy), steps)
-        t_m, t_o = sighting_statistics(T_place, T_over, inliers, rig, strategy)
-        first = index == 0
-        new_m, new_o = _worst(jnp.where(first, s_m, t_m), jnp.where(first, s_o, t_o), limit)
-        new_m, new_o = new_m & active, new_o & active
-        out_m, out_o = out_m | new_m, out_o | new_o
-        # A round that rejects nothing keeps the previous solve (none: solve once).
-        run = active & (first | jnp.any(new_m) | jnp.any(new_o))
-        T_place2, T_over2, k, converged2, _ = _lm(
-            T_place, T_over, without(data, out_m, out_o), rig, strategy, max_steps, rtol,
-            atol, run,
-        )  # fmt: skip
-        converged = jnp.where(run, converged2, converged)
-        return (T_place2, T_over2, out_m, out_o, num_steps + k, converged), None
-
-    none_m, none_o = jnp.zeros((steps, 3, 3), bool), jnp.zeros((steps, 3), bool)
-    carry = (T_place, T_over, none_m, none_o, jnp.array(0, jnp.int32), jnp.array(False))
-    carry, _ = jax.lax.scan(round_, carry, jnp.arange(REJECTION_ROUNDS))
-    T_place, T_over, out_m, out_o, num_steps, converged = carry
-    chi2 = whitened_cost(T_place, T_over, without(data, out_m, out_o), rig, strategy)
-    rejected = RejectedSightings(out_m, out_o)
-    return T_place, T_over, num_steps, converged, rejected, chi2 + runner_up_cost - robust_cost
-
-
-def _overhead_restarts(observations, rejected, T_place, T_over, data, rig, settings, active):
-    """The robust refinement's last stage: the overhead camera solved again by
-    [`jaxloc.solve_overhead_pose`][] from its inlier sightings (less the `rejected`) of
-    the ground placements `T_place` (its best candidate and the distinct runners-up),
-    each refined to convergence by plain least squares on the inliers `data` beside the
-    solution itself; the lowest chi-square wins, and a distinct minimum within
-    `AMBIGUITY_MARGIN` makes the estimate `ambiguous`. Rejecting overhead sightings can
-    leave the camera a second minimum, which the reweighted rounds, started from a
-    closed form the outliers pulled, fall into while the ground placements stay right
-    (measured on the paper's cycles with 5% outlying sightings; restarting before the
-    rejection rounds as well, with the robust cost, picked wrong minima). Returns
-    `(T_place, T_over, num_steps, converged, runner_up_chi2)` as `_multi_start`."""
-    strategy = observations.strategy
-    max_steps, rtol, atol = settings
-    sg = jax.lax.stop_gradient
-    # Not differentiated: the refinement's `implicit_step` carries the derivatives.
-    observations, T_place, T_over, data, rig = sg((observations, T_place, T_over, data, rig))
-    inliers = eqx.tree_at(
-        lambda o: (o.mutual_visible, o.overhead_visible),
-        observations,
-        (observations.mutual_visible & ~rejected.mutual,
-         observations.overhead_visible & ~rejected.overhead),
-    )  # fmt: skip
-    positions = T_place[placement_ids(strategy)][..., 4:]
-    points, bearings, seen = overhead_problem(inliers, positions)
-    solution = solve_overhead_pose(
-        points, bearings, seen, method="robust", throw=False, runner_up=True
-    )
-    candidates = jnp.concatenate([solution.pose.wxyz_xyz[None], solution.alternatives.wxyz_xyz])
-    T_over_starts = jax.vmap(lambda p: inverse(jaxlie.SE3(p)).wxyz_xyz)(candidates)
-    solved = (solution.result == RESULTS.successful) | (solution.result == RESULTS.ambiguous)
-    starts = (
-        jnp.stack([T_place] * (1 + candidates.shape[0])),
-        jnp.concatenate([T_over[None], T_over_starts]),
-        jnp.concatenate([jnp.array([True]), solved[None], solution.alternatives_ok]),
-    )
-    T_place, T_over, num_steps, converged, _, runner_up_chi2 = _multi_start(
-        starts, active, data, rig, strategy, max_steps, rtol, atol, None,
-        to_convergence=True, prefer_converged=True,
-    )  # fmt: skip
-    return T_place, T_over, num_steps, converged, runner_up_chi2
-
-
-def truncated_cost(T_place, T_over, data: CycleData, rig: Rig, strategy: str):
-    """The cost that decides between inlier sets (MSAC): every sighting's squared whitened
-    norm and every odometry row's square, each capped at the sighting gate's
-    `SIGHTING_LIMIT`, summed (an outlier costs the cap whether it is rejected or not)."""
-    steps = data.mutual_pixels.shape[0]
-    limit = SIGHTING_LIMIT[rig.noise_model]
-    r = whitened(T_place, T_over, data, rig, strategy)
-    s_m, s_o = sighting_squares(r, steps)
-    return (
-        jnp.sum(jnp.minimum(s_m, limit))
-        + jnp.sum(jnp.minimum(s_o, limit))
-        + jnp.sum(jnp.minimum(r[18 * steps :] ** 2, limit))
-    )
-
-
-def _one_hot_pick(hot, a):
-    """`a[i]` for the one `i` where `hot (k,)` is True (a select, no gather)."""
-    return jnp.sum(jnp.where(hot.reshape((-1,) + (1,) * (a.ndim - 1)), a, 0), axis=0)
-
-
-def _swap_search(T_place, T_over, data, rejected, rig, strategy, settings, active):
-    """The robust refinement's last stage: one rejected sighting restored and another
-    sighting of the same robot rejected instead, if that fits the whole cycle better.
-    Rejecting one sighting at a time from a fit that absorbed an outlier can name its
-    clean partner (two views of a robot disagree; the fit took the outlier's side), and
-    the wrong side then fits its inliers (measured on the paper's cycles with 5%
-    outlying sightings: most wrong robust poses were one such swap away from the truth).
-    Every swap (each rejected sighting x each other present inlier sighting of its
-    robot) is screened by `_SWAP_SCREEN_STEPS` least-squares steps from the solution on
-    its inliers; the best by [`truncated_cost`][] on every sighting is solved fully and
-    taken if its truncated cost is lower than the solution's by `_SWAP_MARGIN`. Returns
-    `(T_place, T_over, num_steps, swapped, converged, rejected)`; `converged` is that of
-    the swap's solve (meaningful where `swapped`)."""
-    max_steps, rtol, atol = settings
-    sg = jax.lax.stop_gradient
-    T_place, T_over, data, rig = sg((T_place, T_over, data, rig))
-    steps = data.mutual_pixels.shape[0]
-    targets = _sighting_targets(steps)
-    out = _flat_sightings(rejected.mutual, rejected.overhead)
-    present = _flat_sightings(data.mutual_weight > 0, data.overhead_weight > 0)
-    # Each rejected slot j (at most REJECTION_ROUNDS) against the sightings of its robot.
-    slots = jnp.argsort(~out, stable=True)[:REJECTION_ROUNDS]
-    slot_ok = out[slots]
-    same_robot = np.stack([np.nonzero(targets == r)[0] for r in range(3)])  # (3, 4 steps)
-    ks = jnp.asarray(same_robot)[jnp.asarray(targets)[slots]]  # (slots, 4 steps)
-    js = jnp.broadcast_to(slots[:, None], ks.shape)
-    ok = slot_ok[:, None] & present[ks] & ~out[ks]
-    js, ks, ok = js.reshape(-1), ks.reshape(-1), ok.reshape(-1) & active
-    index = jnp.arange(out.shape[0])
-
-    def swapped(j, k):
-        return (out & (index != j)) | (index == k)
-
-    def screen(j, k, lane_ok):
-        m, o = _sighting_masks(swapped(j, k))
-        P, O, _, _, _ = _lm(T_place, T_over, without(data, m, o), rig, strategy,
-                            _SWAP_SCREEN_STEPS, rtol, atol, lane_ok)  # fmt: skip
-        return P, O, jnp.where(lane_ok, truncated_cost(P, O, data, rig, strategy), jnp.inf)
-
-    P, O, costs = jax.vmap(screen)(js, ks, ok)
-    best = jnp.argmin(costs)
-    hot = jnp.arange(costs.shape[0]) == best
-    P, O, j, k = jax.tree.map(lambda a: _one_hot_pick(hot, a), (P, O, js, ks))
-    current = truncated_cost(T_place, T_over, data, rig, strategy)
-    run = active & (costs[best] < current - _SWAP_MARGIN)
-    new_out = swapped(j, k)
-    m, o = _sighting_masks(new_out)
-    swapped_data = without(data, m, o)
-    P, O, num_steps, converged, _ = _lm(P, O, swapped_data, rig, strategy, max_steps, rtol,
-                                        atol, run)  # fmt: skip
-    r, J = whitened_with_jacobian(P, O, swapped_data, rig, strategy)
-    determined = nonsingular_information(J[:, 1:].reshape(r.shape[0], -1))
-    take = run & determined & (truncated_cost(P, O, data, rig, strategy) < current - _SWAP_MARGIN)
-    T_place = jnp.where(take, P, T_place)
-    T_over = jnp.where(take, O, T_over)
-    m = jnp.where(take, m, rejected.mutual)
-    o = jnp.where(take, o, rejected.overhead)
-    return T_place, T_over, jnp.where(run, num_steps, 0), take, converged, RejectedSightings(m, o)
 
 
 class _CycleModel(eqx.Module):
@@ -510,27 +158,19 @@ class _CycleModel(eqx.Module):
 
 
 def _kernel_solver(strategy: str, num_unknowns: int, rtol, atol) -> KernelLevenbergMarquardt:
-    """The kernel of [`_lm`][] (same damping, scale and stopping rule) as an optimistix
-    solver over the chart `theta` of [`unpack`][] at the start."""
+    """The kernel of `jaxloc._refine.kernel.cycle_lm` (same damping, scale and stopping
+    rule) as an optimistix solver over the chart `theta` of [`unpack`][] at the start."""
     return KernelLevenbergMarquardt(
         model=_CycleModel(strategy),
-        retract=_retract,
-        scale=_position_scale,
+        retract=retract,
+        scale=position_scale,
         point=_chart_point,
         coordinates=_chart_coordinates,
         num_unknowns=num_unknowns,
         rtol=rtol,
         atol=atol,
-        decrease_tol=_NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2,
+        decrease_tol=NEGLIGIBLE_DECREASE * (jnp.minimum(rtol, atol) / 1e-6) ** 2,
     )
-
-
-def _retract(x, delta):
-    return unpack(delta, *x)
-
-
-def _position_scale(x):
-    return jnp.max(jnp.abs(x[0][:, 4:]))
 
 
 def _chart_point(theta, args):
@@ -599,30 +239,6 @@ def _statistics(T_place, T_over, data: CycleData, rig, strategy):
     }
 
 
-def _robust_stages(observations, T_place, T_over, data, rig, active, settings, loss,
-                   runner_up_chi2):  # fmt: skip
-    """The robust refinement after its reweighted solve `(T_place, T_over)`: the rejection
-    rounds, the overhead restarts and the swap search. Returns `(T_place, T_over,
-    num_steps, converged, rejected, inliers, runner_up_chi2)`, `inliers` the cycle's
-    `data` less the `rejected` sightings."""
-    strategy = observations.strategy
-    T_place, T_over, k1, converged, rejected, runner_up_chi2 = _reject_and_resolve(
-        T_place, T_over, data, rig, strategy, active, settings, loss, runner_up_chi2
-    )
-    inliers = without(data, rejected.mutual, rejected.overhead)
-    T_place, T_over, k2, converged, restart_chi2 = _overhead_restarts(
-        observations, rejected, T_place, T_over, inliers, rig, settings, active
-    )
-    T_place, T_over, k3, swapped, swap_converged, rejected = _swap_search(
-        T_place, T_over, data, rejected, rig, strategy, settings, active
-    )
-    converged = jnp.where(swapped, swap_converged, converged)
-    inliers = without(data, rejected.mutual, rejected.overhead)
-    # After a swap the earlier minima had other inliers: their costs do not compare.
-    runner_up_chi2 = jnp.where(swapped, jnp.inf, jnp.minimum(runner_up_chi2, restart_chi2))
-    return T_place, T_over, k1 + k2 + k3, converged, rejected, inliers, runner_up_chi2
-
-
 def refine_solution(
     observations: CycleObservations, rig: Rig, estimate: CycleEstimate, *, solver: str,
     max_steps: int, rtol, atol, loss: RobustLoss | None = None,
@@ -647,7 +263,7 @@ def refine_solution(
         )
         stats.update(multi)
         if loss is not None:
-            T_place, T_over, k, converged, rejected, data, runner_up_chi2 = _robust_stages(
+            T_place, T_over, k, converged, rejected, data, runner_up_chi2 = robust_stages(
                 observations, T_place, T_over, data, rig, active, settings, loss,
                 runner_up_chi2,
             )  # fmt: skip
