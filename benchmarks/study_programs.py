@@ -105,10 +105,14 @@ def main() -> None:
 
 
 def _commit() -> str:
+    """The commit of the jaxloc this script imported (which may be another checkout's, under
+    `PYTHONPATH`), not of the script's own checkout."""
+    import jaxloc
+
     try:
         return subprocess.run(
             ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-            cwd=os.path.dirname(os.path.abspath(__file__)), check=True,
+            cwd=os.path.dirname(os.path.abspath(jaxloc.__file__)), check=True,
         ).stdout.strip()  # fmt: skip
     except (OSError, subprocess.CalledProcessError):
         return "unknown"

@@ -337,3 +337,49 @@ def test_a_gross_error_in_a_weakly_controlled_odometry_is_inconsistent():
     assert chi2_passes.all()  # the total chi-square does not notice
     assert np.all(worst > 1.0), worst
     assert np.all(result == RESULTS.inconsistent_fit._value), result
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("late", [1, 2])
+def test_mixed_polish_flags_gate_as_separate_calls(late):
+    """A trial gates its closed form (polished, with its rival) and its refinement and the
+    true poses (not polished) in one `gate_all` call; each gate equals that of a call with
+    only its own kind. `late=2` puts more unpolished points than polished lanes (one: the
+    closed form, gated here without rivals), the branch that adds lanes with an
+    evaluation only."""
+    from jaxloc._model.covariance import crlb_inputs
+    from jaxloc._model.gates import end_poses, gate_all, gate_point, GatePoint
+    from jaxloc._model.measurements import cycle_data
+    from jaxloc._refine.cycle import refine_solution
+    from jaxloc._solvers.localize import closed_forms
+
+    scenario = jaxloc.Scenario.paper("sequential")
+    rig = scenario.rig
+
+    @jax.jit
+    def gates(key):
+        truth, obs, _ = jaxloc.simulate_cycle(scenario, key)
+        data = cycle_data(obs, rig)
+        (closed,) = closed_forms(obs, ("robust",))
+        refined, _ = refine_solution(obs, rig, closed, solver="lm", max_steps=50, rtol=1e-6,
+                                     atol=1e-6)  # fmt: skip
+        T_place, T_over, bound_data = crlb_inputs(rig, truth.poses, scenario.odometry_sigma_rel,
+                                                  "sequential")  # fmt: skip
+        true_point = GatePoint(T_place, T_over, end_poses(T_place, T_over, "sequential"),
+                               bound_data, RESULTS.successful)  # fmt: skip
+        polished = [gate_point(closed, data, "sequential")]
+        unpolished = [gate_point(refined, data, "sequential"), true_point][:late]
+        mixed = gate_all(polished + unpolished, rig, "sequential",
+                         polish=[True] + [False] * late)  # fmt: skip
+        apart = gate_all(polished, rig, "sequential", polish=True) + gate_all(
+            unpolished, rig, "sequential", polish=False
+        )
+        return mixed, apart
+
+    mixed, apart = gates(jr.key(3))
+    assert len(mixed) == len(apart) == 1 + late
+    for one, other in zip(mixed, apart):
+        assert one[0] == other[0]
+        for a, b in zip(jax.tree.leaves(one[1:]), jax.tree.leaves(other[1:])):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-12)
+    assert mixed[0][0] == RESULTS.successful and mixed[-1][0] == RESULTS.successful
