@@ -17,7 +17,9 @@ sighting, the RMS of the bound's standard deviation over the same cycles), its r
 (targets: <= 1.1 for one-in-10%, <= 1.3 for 5%-of-sightings), the fraction of outliers
 named (`rejected`; target >= 95% in one-in-10%), and of those detectable at all (noise-free
 standardized statistic at the truth above the sighting gate's limit: an outlier below it
-hides in directions no other measurement checks), the clean sightings rejected, the
+hides in directions no other measurement checks) and identifiable (detectable, and the
+clean cycle without that sighting still observable: an outlier on a sighting no other can
+stand in for shows as misfit but cannot be pinned on it), the clean sightings rejected, the
 statuses, and the successful cycles whose C error exceeds 5 (10) standard deviations of
 the bound (wrong poses) with the RMS of error over bound without them. Writes JSON
 (strict, NaN as null).
@@ -40,7 +42,11 @@ from jaxloc._core.files import dumps_json  # noqa: E402
 from jaxloc._core.linalg import gram, spd_inverse  # noqa: E402
 from jaxloc._core.robust import DEFAULT_LOSS_SCALE  # noqa: E402
 from jaxloc._model.covariance import crlb_inputs  # noqa: E402
-from jaxloc._model.gates import redundancies, sighting_limits  # noqa: E402
+from jaxloc._model.gates import (  # noqa: E402
+    nonsingular_information,
+    redundancies,
+    sighting_limits,
+)
 from jaxloc._model.measurements import OBSERVER, TARGET, whitened_with_jacobian  # noqa: E402
 from jaxloc._sim.defects import _sighting_mask  # noqa: E402
 
@@ -61,11 +67,18 @@ def _outlier_masks(study, obs, key):
 
 
 def _detectable(rig, truth, rel, strategy, obs, bad, m, o):
-    """`(mutual (steps, 3, 3), overhead (steps, 3))`: whether each outlier is detectable
-    at all: its noise-free standardized statistic at the truth, `d^T (I - P_b) d` (`d` its
-    whitened offset, `P_b` its sighting's leverage block in the clean cycle's fit), above
-    the sighting gate's limit. An outlier below it hides in the directions the other
-    measurements do not check; no test on the cycle's data can name it reliably."""
+    """`((mutual (steps, 3, 3), overhead (steps, 3)), (mutual, overhead))`: whether each
+    outlier is detectable at all, and whether it is also identifiable. Detectable: its
+    noise-free standardized statistic at the truth, `d^T (I - P_b) d` (`d` its whitened
+    offset, `P_b` its sighting's leverage block in the clean cycle's fit), above the
+    sighting gate's limit. An outlier below it hides in the directions the other
+    measurements do not check; no test on the cycle's data can name it reliably.
+    Identifiable: detectable, and the clean cycle without that one sighting still has a
+    nonsingular information (`jaxloc._model.gates.nonsingular_information` at the truth).
+    Where that sighting is the only one that fixes some unknown (e.g. one of the two
+    sightings in the only image of a placement, which together fix its rotation), the
+    misfit shows but cannot be pinned on either sighting: leaving out either leaves the
+    cycle unobservable, and that is the status such a cycle gets."""
     T_place, T_over, data = crlb_inputs(rig, truth, rel, strategy)
     r, J = whitened_with_jacobian(T_place, T_over, data, rig, strategy)
     J = J[:, 1:].reshape(r.shape[0], -1)
@@ -81,8 +94,20 @@ def _detectable(rig, truth, rel, strategy, obs, bad, m, o):
     stat = jnp.einsum("sa,sab,sb->s", d, R, d)
     limit, _ = sighting_limits(data.num_sightings + data.num_odometry, rig.noise_model, J.dtype)
     ok = stat > limit
-    mutual = jnp.zeros((steps, 3, 3), bool).at[pair].set(ok[: 6 * steps].reshape(steps, 6))
-    return mutual & m, ok[6 * steps :].reshape(steps, 3) & o
+    # Each sighting's two rows come first, in the order of `ok`.
+    rows = jnp.arange(J.shape[0])
+
+    def observable_without(s):
+        keep = (rows // 2 != s) | (rows >= 2 * pairs)
+        return nonsingular_information(J * keep[:, None])
+
+    separable = ok & jax.vmap(observable_without)(jnp.arange(pairs))
+
+    def masks(flags):
+        mutual = jnp.zeros((steps, 3, 3), bool).at[pair].set(flags[: 6 * steps].reshape(steps, 6))
+        return mutual & m, flags[6 * steps :].reshape(steps, 3) & o
+
+    return masks(ok), masks(separable)
 
 
 @ft.partial(jax.jit, static_argnames=("strategy", "study", "loss"))
@@ -105,7 +130,9 @@ def _batch(keys, loss_scale, *, strategy, study, loss):
             return jnp.linalg.norm(e.poses.T_world_overhead.wxyz_xyz[4:] - c_true)
 
         rej = robust.rejected
-        dm, do = _detectable(rig, truth.poses, sc.odometry_sigma_rel, strategy, obs, bad, m, o)
+        (dm, do), (im, io) = _detectable(
+            rig, truth.poses, sc.odometry_sigma_rel, strategy, obs, bad, m, o
+        )
         return {
             "visible": visible,
             "closed": jaxloc.status_code(est.result),
@@ -119,6 +146,8 @@ def _batch(keys, loss_scale, *, strategy, study, loss):
             "detectable": jnp.sum(dm) + jnp.sum(do),
             "rejected": jnp.sum(rej.mutual) + jnp.sum(rej.overhead),
             "named_detectable": jnp.sum(rej.mutual & dm) + jnp.sum(rej.overhead & do),
+            "identifiable": jnp.sum(im) + jnp.sum(io),
+            "named_identifiable": jnp.sum(rej.mutual & im) + jnp.sum(rej.overhead & io),
             "false": jnp.sum(rej.mutual & ~m) + jnp.sum(rej.overhead & ~o),
             "sightings": jnp.sum(obs.overhead_visible) + 6 * obs.mutual.shape[0],
             "num_steps": robust.stats["num_steps"],
@@ -166,6 +195,11 @@ def _summary(out, names):
     row["detectable"] = int(out["detectable"][vis].sum())
     row["named_detectable"] = int(out["named_detectable"][vis].sum())
     row["named_fraction_of_detectable"] = row["named_detectable"] / max(row["detectable"], 1)
+    row["identifiable"] = int(out["identifiable"][vis].sum())
+    row["named_identifiable"] = int(out["named_identifiable"][vis].sum())
+    row["named_fraction_of_identifiable"] = row["named_identifiable"] / max(
+        row["identifiable"], 1
+    )
     missed = vis & (out["detectable"] > out["named_detectable"])
     row["missed_detectable_cycles"] = int(missed.sum())
     row["missed_detectable_unobservable"] = int(
@@ -227,7 +261,8 @@ def main() -> None:
             f"\n{study} ({args.strategy}, {args.loss} {scale}): {r['visible']} visible cycles, "
             f"{r['corrupted']} corrupted, {r['outliers']} outliers, "
             f"{100 * r['named_fraction']:.1f}% named ({r['named_detectable']} of the "
-            f"{r['detectable']} detectable at all), clean sightings rejected "
+            f"{r['detectable']} detectable at all, {r['named_identifiable']} of the "
+            f"{r['identifiable']} identifiable), clean sightings rejected "
             f"{100 * r['clean_rejected_rate']:.3f}%"
         )
         for stage in ("plain", "robust"):
