@@ -466,11 +466,43 @@ def _call(func, args, threaded: bool) -> int:
 
     worker = threading.Thread(target=work, name="jaxloc-command", daemon=True)
     worker.start()
-    while worker.is_alive():
-        worker.join(0.25)  # a timed wait: pending signal handlers run between waits
+    _wait_interruptibly(worker)
     if "error" in outcome:
         raise outcome["error"]
     return outcome["code"]
+
+
+def _wait_interruptibly(worker: threading.Thread) -> None:
+    """Wait in the main thread until `worker` ends; Ctrl-C raises `KeyboardInterrupt`.
+
+    In CI a command compiling one program (every other Python thread waiting) once
+    ignored Ctrl-C for over a minute, its main thread in a timed `join` loop like this
+    one. A suspect: the kernel may hand the SIGINT to a thread started at import (BLAS's,
+    XLA's), which does not block it; that sets Python's flag, and the main thread runs
+    the handler only once its evaluation loop is told to. So the signal also wakes this
+    wait through `signal.set_wakeup_fd`, and a SIGINT read there is raised here."""
+    if os.name != "posix":
+        while worker.is_alive():
+            worker.join(0.25)  # a timed wait: pending signal handlers run between waits
+        return
+    import select
+
+    read_end, write_end = os.pipe()
+    os.set_blocking(read_end, False)
+    os.set_blocking(write_end, False)
+    previous = signal.set_wakeup_fd(write_end, warn_on_full_buffer=False)
+    try:
+        while worker.is_alive():
+            ready, _, _ = select.select([read_end], [], [], 0.25)
+            if ready and signal.SIGINT in os.read(read_end, 512):
+                # The flag may still be set: a second KeyboardInterrupt must not
+                # interrupt the exit.
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
+                raise KeyboardInterrupt
+    finally:
+        signal.set_wakeup_fd(previous)
+        os.close(read_end)
+        os.close(write_end)
 
 
 def _main(argv: list[str] | None, *, threaded: bool) -> int:
