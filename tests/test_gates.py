@@ -342,7 +342,7 @@ def test_a_gross_error_in_a_weakly_controlled_odometry_is_inconsistent():
 @pytest.mark.slow
 @pytest.mark.parametrize("late", [1, 2])
 def test_mixed_polish_flags_gate_as_separate_calls(late):
-    """A trial gates its closed form (polished, with its rival) and its refinement and the
+    """A trial gates its closed form (polished) and its refinement and the
     true poses (not polished) in one `gate_all` call; each gate equals that of a call with
     only its own kind. `late=2` puts more unpolished points than polished lanes (one: the
     closed form, gated here without rivals), the branch that adds lanes with an
