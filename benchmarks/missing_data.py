@@ -16,7 +16,10 @@ Reports per strategy: observable cycles, the share of them localized, the refine
 C's position against the bound's (efficiency = bound RMSE / RMSE over the localized
 observable cycles; targets >= 95% localized and efficiency >= 0.95), and the `successful`
 estimates (closed form or refined) that are wrong (position NEES above
-`WRONG_POSE_NEES`) or sit on an unobservable cycle. Writes JSON.
+`WRONG_POSE_NEES`) or sit on an unobservable cycle; the statuses of the observable cycles
+not localized (refined and closed form), and the `ambiguous` ones split by how close
+their runner-up minimum fits (within `AMBIGUITY_MARGIN` or not) with how many of each
+would be wrong if the best were reported. Writes JSON.
 """
 
 import argparse
@@ -33,6 +36,7 @@ import jax.random as jr  # noqa: E402
 import jaxloc  # noqa: E402
 import numpy as np  # noqa: E402
 from jaxloc._core.files import dumps_json  # noqa: E402
+from jaxloc._model.gates import AMBIGUITY_MARGIN  # noqa: E402
 from jaxloc._study.robustness import missing_data_trial, WRONG_POSE_NEES  # noqa: E402
 
 
@@ -40,6 +44,27 @@ from jaxloc._study.robustness import missing_data_trial, WRONG_POSE_NEES  # noqa
 def _batch(strategy, keys, probability):
     scenario = jaxloc.Scenario.paper(strategy)
     return jax.vmap(lambda k: missing_data_trial(scenario, k, probability))(keys)
+
+
+def _ambiguous_split(r, base, names) -> dict:
+    """The observable cycles the refinement calls `ambiguous`, by how much worse its
+    runner-up minimum fits (`runner_up_chi2 - refined_chi2`): within `AMBIGUITY_MARGIN`
+    (4, a likelihood ratio below e^2: two minima the data do not tell apart) or not (only
+    within the wider `STAND_IN_MARGIN` of a stand-in search, or `ambiguous` by the gates'
+    own rival minima); and of each, how many would be wrong (NEES above
+    `WRONG_POSE_NEES`) if the best minimum were reported."""
+    amb = base & (r["refined"] == {v: k for k, v in names.items()}["ambiguous"])
+    gap = r["runner_up_chi2"] - r["refined_chi2"]
+    wrong = r["refined_nees"] > WRONG_POSE_NEES
+    close = amb & (gap < AMBIGUITY_MARGIN)
+    wide = amb & (gap >= AMBIGUITY_MARGIN)
+    return {
+        "ambiguous": int(amb.sum()),
+        "within_ambiguity_margin": int(close.sum()),
+        "not_within_ambiguity_margin": int(wide.sum()),
+        "best_wrong_within_ambiguity_margin": int(np.sum(close & wrong)),
+        "best_wrong_not_within_ambiguity_margin": int(np.sum(wide & wrong)),
+    }
 
 
 def main() -> None:
@@ -52,6 +77,7 @@ def main() -> None:
     parser.add_argument("--out", default="benchmarks/results/missing_data.json")
     args = parser.parse_args()
     report = {"cycles_per_strategy": args.cycles, "probability": args.probability}
+    names = jaxloc.status_names()
     for strategy in args.strategy:
         t0 = time.perf_counter()
         parts = []
@@ -93,6 +119,15 @@ def main() -> None:
             "efficiency": bound / rmse,
             "successful_wrong": wrong,
             "successful_unobservable": unobs,
+            "not_localized_status": {
+                names[int(c)]: int(n)
+                for c, n in zip(*np.unique(r["refined"][base & ~ok], return_counts=True))
+            },
+            "not_localized_closed_status": {
+                names[int(c)]: int(n)
+                for c, n in zip(*np.unique(r["closed"][base & ~ok], return_counts=True))
+            },
+            "ambiguous_by_margin": _ambiguous_split(r, base, names),
             "seconds": time.perf_counter() - t0,
         }
         report[strategy] = row

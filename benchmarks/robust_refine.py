@@ -48,7 +48,8 @@ from jaxloc._model.gates import (  # noqa: E402
     sighting_limits,
 )
 from jaxloc._model.measurements import OBSERVER, TARGET, whitened_with_jacobian  # noqa: E402
-from jaxloc._sim.defects import _sighting_mask  # noqa: E402
+from jaxloc._sim.defects import _set, _sighting_mask  # noqa: E402
+from jaxloc._study.robustness import final_positions, position_nees  # noqa: E402
 
 
 STUDIES = {"one-in-10%": 0.10, "5%-of-sightings": 0.05}
@@ -124,6 +125,16 @@ def _batch(keys, loss_scale, *, strategy, study, loss):
         plain = jaxloc.refine_cycle(bad, rig, est, throw=False)
         robust = jaxloc.refine_cycle(bad, rig, est, loss=loss, loss_scale=loss_scale, throw=False)
         bound = jaxloc.cycle_crlb(rig, truth.poses, odometry_sigma_rel=sc.odometry_sigma_rel)
+        # The ideal rejector: every outlier known and left out (missing), nothing else.
+        nan = jnp.full(3, jnp.nan, obs.mutual.dtype)
+        kept = _set(bad, (m, o), nan, nan[:2], visible=False)
+        oracle = jaxloc.refine_cycle(kept, rig, jaxloc.localize_cycle(kept, rig, throw=False),
+                                     throw=False)  # fmt: skip
+        kept_bound = jaxloc.cycle_crlb(
+            rig, truth.poses, odometry_sigma_rel=sc.odometry_sigma_rel,
+            mutual_visible=kept.mutual_visible & obs.mutual_visible,
+            overhead_visible=kept.overhead_visible,
+        )  # fmt: skip
         c_true = truth.poses.T_world_overhead.wxyz_xyz[4:]
 
         def c_error(e):
@@ -141,6 +152,10 @@ def _batch(keys, loss_scale, *, strategy, study, loss):
             "plain_error": c_error(plain),
             "robust_error": c_error(robust),
             "crlb_var": jnp.trace(bound.position[0]),
+            "oracle": jaxloc.status_code(oracle.result),
+            "oracle_error": c_error(oracle),
+            "kept_crlb_var": jnp.trace(kept_bound.position[0]),
+            "robust_nees_c": position_nees(robust, final_positions(truth.poses))[0],
             "outliers": jnp.sum(m) + jnp.sum(o),
             "named": jnp.sum(rej.mutual & m) + jnp.sum(rej.overhead & o),
             "detectable": jnp.sum(dm) + jnp.sum(do),
@@ -188,6 +203,29 @@ def _summary(out, names):
                 for c, n in zip(*np.unique(out[stage][vis], return_counts=True))
             },
         }
+    ok = vis & (out["robust"] == 0)
+    row["robust"]["ratio_to_kept_bound"] = float(
+        np.sqrt(np.mean(out["robust_error"][ok] ** 2) / np.mean(out["kept_crlb_var"][ok]))
+    )
+    nees = out["robust_nees_c"][ok]
+    row["robust"]["nees_c_mean_p99_above_16"] = [
+        float(np.mean(nees)), float(np.percentile(nees, 99)), int(np.sum(nees > 16.27))
+    ]  # fmt: skip
+    ok = vis & (out["oracle"] == 0)
+    z2 = out["oracle_error"] ** 2 / np.where(out["crlb_var"] > 0, out["crlb_var"], np.inf)
+    row["oracle"] = {
+        "successful": int(ok.sum()),
+        "ratio": float(
+            np.sqrt(np.mean(out["oracle_error"][ok] ** 2) / np.mean(out["crlb_var"][ok]))
+        ),
+        "ratio_to_kept_bound": float(
+            np.sqrt(np.mean(out["oracle_error"][ok] ** 2) / np.mean(out["kept_crlb_var"][ok]))
+        ),
+        "kept_bound_over_clean_bound": float(
+            np.sqrt(np.mean(out["kept_crlb_var"][ok]) / np.mean(out["crlb_var"][ok]))
+        ),
+        "wrong_above_5_sd": int(np.sum(ok & (z2 > 25.0))),
+    }
     n_out = int(out["outliers"][vis].sum())
     row["outliers"] = n_out
     row["named"] = int(out["named"][vis].sum())
@@ -279,6 +317,18 @@ def main() -> None:
                 f"{st['ratio_without_wrong']:.3f}"
             )
             print(f"          status {st['status']}")
+        o_ = r["oracle"]
+        print(
+            f"  oracle (outliers known, left out): successful {o_['successful']}, ratio "
+            f"{o_['ratio']:.3f} to the clean bound, {o_['ratio_to_kept_bound']:.3f} to the bound "
+            f"of the clean sightings (that bound / the clean cycle's: "
+            f"{o_['kept_bound_over_clean_bound']:.3f}), wrong above 5 sd {o_['wrong_above_5_sd']}"
+        )
+        print(
+            f"  robust: ratio to the bound of the clean sightings "
+            f"{r['robust']['ratio_to_kept_bound']:.3f}; C's NEES under its own covariance "
+            f"mean/p99/above 16.27 (chi2(3) 0.999) {r['robust']['nees_c_mean_p99_above_16']}"
+        )
         print(f"  robust steps median/p99/max {r['robust_steps_median_p99_max']}")
         print(f"  cycles missing a detectable outlier: {r['missed_detectable_cycles']} "
               f"({r['missed_detectable_unobservable']} end unobservable)")  # fmt: skip

@@ -133,7 +133,9 @@ def missing_data_trial(scenario: Scenario, key: PRNGKeyArray, probability) -> di
     dropped), the closed form's and the refinement's status codes (`closed`, `refined`)
     and largest position NEES over the four end-of-cycle positions (`closed_nees`,
     `refined_nees`; see [`position_nees`][]), `finite` (every pose of both finite), and
-    C's squared refined position error and bound (`sq_error_c`, `bound_c`, m^2)."""
+    C's squared refined position error and bound (`sq_error_c`, `bound_c`, m^2), and the
+    refinement's chi-square with that of the best other distinct minimum its multi-start
+    found (`refined_chi2`, `runner_up_chi2`; `inf` if none: what decides `ambiguous`)."""
     k_sim, k_drop = jr.split(key)
     truth, obs, visible = simulate_cycle(scenario, k_sim)
     obs = drop_sightings(obs, probability, key=k_drop)
@@ -165,4 +167,6 @@ def missing_data_trial(scenario: Scenario, key: PRNGKeyArray, probability) -> di
         "finite": jnp.all(jnp.stack([jnp.all(jnp.isfinite(T)) for T in poses])),
         "sq_error_c": jnp.sum(e * e),
         "bound_c": jnp.trace(bound.position[0]),
+        "refined_chi2": refined.checks.chi2,
+        "runner_up_chi2": refined.stats.get("runner_up_chi2", jnp.inf),
     }
