@@ -1,6 +1,7 @@
 """The `jaxloc` command line (jaxloc._cli): studies, outputs checked before work, one-line
 errors, exit codes, Ctrl-C (issue 17 cases 8, 9, 10, 12, 13, 14)."""
 
+import glob
 import json
 import os
 import signal
@@ -321,10 +322,48 @@ def test_help_documents_the_exit_codes(capsys):
 
 
 def _jaxloc(args, env):
-    return subprocess.Popen(
-        [sys.executable, "-m", "jaxloc._cli.main", *args], text=True,
-        env={**env, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-    )  # fmt: skip
+    """The `jaxloc` program in a child process, started with SIGINT at its default and
+    unblocked, as a shell starts it: a child inherits an ignored disposition and a blocked
+    mask (Python keeps both, and the program could not be interrupted), and this test
+    process may have either from code run before it (the state found is kept in
+    `_PARENT_SIGINT` for a failure's message)."""
+    global _PARENT_SIGINT
+    _PARENT_SIGINT = _sigint_state()
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)  # SIG_DFL after exec
+    mask = signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-m", "jaxloc._cli.main", *args], text=True,
+            env={**env, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )  # fmt: skip
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+        signal.signal(signal.SIGINT, previous)
+
+
+_PARENT_SIGINT = ""
+
+
+def _sigint_state() -> str:
+    """This process's SIGINT handler and whether this thread blocks it."""
+    blocked = signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, set())
+    return f"handler {signal.getsignal(signal.SIGINT)!r}, blocked {blocked}"
+
+
+def _signal_lines(pid: int) -> str:
+    """Each thread's pending, blocked, ignored and caught signal masks (Linux `/proc`)."""
+    lines = []
+    for task in sorted(glob.glob(f"/proc/{pid}/task/*")):
+        try:
+            with open(f"{task}/comm") as f:
+                name = f.read().strip()
+            with open(f"{task}/status") as f:
+                masks = [x for x in f.read().splitlines() if x.startswith(("Sig", "ShdPnd"))]
+        except OSError:
+            continue
+        lines.append(f"{os.path.basename(task)} {name}: {' '.join(masks)}")
+    return "\n".join(lines)
 
 
 def _wait_for(predicate, proc, timeout):
@@ -340,9 +379,13 @@ def _interrupt(proc):
     try:
         out, err = proc.communicate(timeout=60)
     except subprocess.TimeoutExpired:
+        threads = _signal_lines(proc.pid)
         proc.kill()  # and close its pipes: a neighbouring test must not see them
         out, err = proc.communicate()
-        pytest.fail(f"no exit within 60 s of SIGINT; stderr: {err[-2000:]}")
+        pytest.fail(
+            f"no exit within 60 s of SIGINT; stderr: {err[-2000:]}\nthis process before "
+            f"the start: {_PARENT_SIGINT}\nthe program's threads:\n{threads}"
+        )
     assert proc.returncode == 130, (proc.returncode, out, err)
     assert "Traceback" not in err and "FATAL" not in err and "Abort" not in err, err
     lines = [line for line in err.splitlines() if line.strip()]
