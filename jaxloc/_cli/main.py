@@ -480,7 +480,9 @@ def _wait_interruptibly(worker: threading.Thread) -> None:
     one. A suspect: the kernel may hand the SIGINT to a thread started at import (BLAS's,
     XLA's), which does not block it; that sets Python's flag, and the main thread runs
     the handler only once its evaluation loop is told to. So the signal also wakes this
-    wait through `signal.set_wakeup_fd`, and a SIGINT read there is raised here."""
+    wait through `signal.set_wakeup_fd`, and a SIGINT read there is raised here. The
+    wakeup did not cure that CI failure (it recurred once with it in); its cause is not
+    known, and `tests/test_cli.py` reports every thread's signal masks when it recurs."""
     if os.name != "posix":
         while worker.is_alive():
             worker.join(0.25)  # a timed wait: pending signal handlers run between waits
