@@ -123,6 +123,50 @@ def test_clean_partner_rejected_in_place_of_an_absorbed_outlier_is_swapped_back(
     assert jaxloc.rejected_sightings(robust) == [("mutual", 0, "C1", "C2")]
 
 
+def _study_cycle(cycle, mutual, overhead):
+    """Cycle `cycle` of `benchmarks/robust_refine.py`'s 5%-of-sightings study (seed 0)
+    with its outliers on the `mutual` `(step, observer, target)` and `overhead`
+    `(step, robot)` sightings: `(truth, observations with the outliers)`."""
+    key = jr.fold_in(jr.key(0), cycle + 10**9)
+    k_sim, _, k_out = jr.split(key, 3)
+    truth, obs, visible = _simulate(SCENARIO, k_sim)
+    assert bool(visible)
+    steps = obs.mutual.shape[0]
+    m = np.zeros((steps, 3, 3), bool)
+    o = np.zeros((steps, 3), bool)
+    for index in mutual:
+        m[index] = True
+    for index in overhead:
+        o[index] = True
+    return truth, jaxloc.add_outliers(obs, RIG, jnp.asarray(m), jnp.asarray(o), key=k_out)
+
+
+def test_overhead_outliers_the_rejection_rounds_kept_are_found_by_the_consensus_search():
+    """Cycle 805: outliers on C's sightings of C2 at step 0 and of C1 at step 1. The
+    rejection rounds name one and keep the other; C settles 2.6 m off in a minimum that
+    fits those inliers (successful before the consensus search, 9dc2f8e). P3P on the
+    triplets of all overhead sightings finds C's pose with both outliers out, which fits
+    the whole cycle better."""
+    truth, bad = _study_cycle(805, [], [(0, 1), (1, 0)])
+    robust = jaxloc.refine_cycle(bad, RIG, _localize(bad, RIG), loss="huber", throw=False)
+    error = np.linalg.norm(_c_position(robust) - _c_position(truth))
+    print(f"cycle 805: robust C {error:.3f} m off, rejected {jaxloc.rejected_sightings(robust)}")
+    assert bool(robust.result == jaxloc.RESULTS.successful)
+    assert error < 0.3  # the bound's standard deviation here is 0.12 m
+    assert jaxloc.rejected_sightings(robust) == [("overhead", 0, "C", "C2"),
+                                                 ("overhead", 1, "C", "C1")]  # fmt: skip
+
+
+def test_a_better_fit_with_more_rejections_than_allowed_makes_the_pose_ambiguous():
+    """Cycle 9819: four outliers. The rejection rounds end 2.2 m off with five
+    sightings rejected, consistent on its inliers (successful before the consensus
+    search, 9dc2f8e); the consensus search finds a pose that fits the whole cycle better
+    but only with six rejected, more than `REJECTION_ROUNDS`: neither is trusted."""
+    _, bad = _study_cycle(9819, [(0, 1, 2), (2, 0, 1), (2, 2, 0)], [(0, 1)])
+    robust = jaxloc.refine_cycle(bad, RIG, _localize(bad, RIG), loss="huber", throw=False)
+    assert bool(robust.result == jaxloc.RESULTS.ambiguous)
+
+
 @pytest.mark.parametrize("loss", ["huber", "cauchy"])
 def test_50px_outlier_named_excluded_and_c_recovered(loss):
     truth, obs = _cycle(1)

@@ -442,14 +442,22 @@ def refine_cycle(
     the fitted ground placements ([`jaxloc.solve_overhead_pose`][], its best candidate
     and distinct runners-up), each refined to convergence on the inliers beside the
     solution: the lowest chi-square wins (rejections can leave the camera a second
-    minimum). Last, a swap search: each rejected sighting is restored in turn with
+    minimum). Then a swap search: each rejected sighting is restored in turn with
     another present sighting of the same robot rejected instead (screened by 4 steps
     each, the best solved fully), and the swap is taken if it lowers the cycle's
     truncated cost (every sighting's squared whitened norm capped at the sighting limit,
     so an outlier costs the cap whether rejected or not) by more than 1 and leaves the
     information nonsingular: a fit that absorbed an outlier can reject its clean partner
-    instead. The estimate, covariance, gates (chi-square and degrees of freedom over
-    the inliers only), `ambiguous` (a distinct minimum of the last stage within the
+    instead. Last, a consensus search (MSAC) over the overhead camera: P3P on every
+    triplet of its sightings of three distinct placements at the fitted placements
+    (rejected sightings included), the 4 best candidates by the overhead sightings'
+    truncated cost refined (robust, then plain on the overhead sightings within the
+    limit), and the best taken if it lowers the cycle's truncated cost by more than 1
+    with at most 5 sightings rejected; one that needs more makes the estimate
+    `ambiguous` (the rounds can keep an overhead outlier or reject a clean overhead
+    sighting and leave C in a wrong minimum of those inliers). The estimate,
+    covariance, gates (chi-square and degrees of freedom over the inliers only),
+    `ambiguous` (a distinct minimum of the restarts within the
     margin, or the closed form's rival, decided on the difference of the robust costs
     of the two minima) and gradients (implicit, with the rejections held fixed) are those of
     the maximum-likelihood estimate given the inliers. An outlier in a sighting nothing

@@ -103,7 +103,7 @@ def _polish(pose: jaxlie.SE3, X, b, w, steps: int) -> jaxlie.SE3:
     return rplus(jaxlie.SE3(out.x), step)
 
 
-def _collinearity_free(Xt, eps):
+def collinearity_free(Xt, eps):
     """Which triplets `(T, 3, 3)` are not (nearly) collinear: twice the area over the
     longest squared edge (scale free, ~eps for exactly collinear points)."""
     e1 = Xt[:, 1] - Xt[:, 0]
@@ -142,7 +142,7 @@ def _candidates(X, b, use, eps):
     tri = np.array(list(itertools.combinations(range(n), 3)), dtype=np.int32)
     Xs, bs = jax.lax.stop_gradient(X), jax.lax.stop_gradient(b)
     Xt, bt = Xs[tri], bs[tri]
-    noncollinear, cw, longest = _collinearity_free(Xt, eps)
+    noncollinear, cw, longest = collinearity_free(Xt, eps)
     tri_ok = jnp.all(use[tri], axis=1) & noncollinear
     k = min(_NUM_TRIPLETS, tri.shape[0])
     hot = _select_triplets(Xt, bt, tri_ok, cw, longest, k).astype(X.dtype)
