@@ -59,7 +59,8 @@ class Geometry(eqx.Module):
     frame `[k, i, j]` (diagonal a dummy); `mutual_body`: the same in robot `i`'s body
     frame; `R_over (3, 3)`, `p_over (3,)`: the overhead camera; `over_cam (steps, 3, 3)`:
     every marker in its frame; `markers (3, 3)`, `mount_R (3, 3, 3)`: the ground
-    robots' markers and camera mounts.
+    robots' markers and camera mounts; `markers_world (steps, 3, 3)`: every marker in
+    `W`.
     """
 
     R_body: Float[Array, "steps 3 3 3"]
@@ -71,6 +72,7 @@ class Geometry(eqx.Module):
     over_cam: Float[Array, "steps 3 3"]
     markers: Float[Array, "3 3"]
     mount_R: Float[Array, "3 3 3"]
+    markers_world: Float[Array, "steps 3 3"]
 
 
 def geometry(T_place, T_over, rig: Rig, strategy: str) -> Geometry:
@@ -87,7 +89,9 @@ def geometry(T_place, T_over, rig: Rig, strategy: str) -> Geometry:
     R_over, p_over = rotations(T_over), T_over[4:]
     x = matvec(R, markers) + p  # (steps, 3, 3): markers in W
     over_cam = in_body(R_over, p_over, x)
-    return Geometry(R, p, mutual_cam, mutual_body, R_over, p_over, over_cam, markers, mount_R)
+    return Geometry(
+        R, p, mutual_cam, mutual_body, R_over, p_over, over_cam, markers, mount_R, x
+    )
 
 
 def _by_observer(x):

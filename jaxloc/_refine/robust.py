@@ -5,6 +5,7 @@ consensus search over the overhead camera's pose.
 Each stage solves with the cycle's least-squares kernel (`jaxloc._refine.kernel`) and
 decides between solutions by the gates' statistics (`jaxloc._model.gates`)."""
 
+import functools as ft
 import itertools
 
 import equinox as eqx
@@ -14,12 +15,11 @@ import jaxlie
 import numpy as np
 
 from .._core.linalg import gram, spd_inverse
-from .._core.poses import inverse
+from .._core.poses import apply, inverse
 from .._core.results import RESULTS
 from .._cycle.estimate import RejectedSightings
 from .._cycle.layout import placement_ids
 from .._cycle.rig import Rig
-from .._cycle.sightings import matvec
 from .._model.gates import nonsingular_information, SIGHTING_LIMIT, standardized_squares
 from .._model.measurements import (
     CycleData,
@@ -288,6 +288,50 @@ def _distinct_placement_triplets(strategy: str) -> np.ndarray:
     return np.array([t for t in triplets if len(set(ids[list(t)])) == 3], dtype=np.int32)
 
 
+def _consensus_candidates(T_place, T_over, data, rig, strategy, bearings):
+    """The consensus search's candidates for the overhead camera at the placements
+    `T_place`: P3P ([`jaxloc.p3p`][]) on every triplet of overhead sightings of distinct
+    placements (`bearings (steps, 3, 3)`; every sighting `data` holds), each candidate
+    scored by the truncated cost of the overhead sightings (squared whitened pixel
+    residuals capped at `SIGHTING_LIMIT`; a marker behind the camera costs the cap), and
+    the `_CONSENSUS_CANDIDATES` best whose centres are `_CONSENSUS_SEPARATION` apart:
+    `(T_over (k, 7), ok (k,))`."""
+    limit = SIGHTING_LIMIT[rig.noise_model]
+    dtype = T_place.dtype
+    X = geometry(T_place, T_over, rig, strategy).markers_world.reshape(-1, 3)
+    b = bearings.reshape(-1, 3)
+    w = data.overhead_weight.reshape(-1)
+    use = (w > 0) & jnp.all(jnp.isfinite(b), axis=-1)
+    X = jnp.where(use[:, None], X, 0.0)
+    b = jnp.where(use[:, None], b, jnp.array([0.0, 0.0, 1.0], dtype))
+    pixels = data.overhead_pixels.reshape(-1, 2)
+    tri = _distinct_placement_triplets(strategy)
+    noncollinear, _, _ = collinearity_free(X[tri], jnp.finfo(dtype).eps)
+    roots = jax.vmap(p3p)(X[tri], b[tri])
+    params = roots.poses.wxyz_xyz.reshape(-1, 7)  # T_cam_world
+    ok = (roots.valid & (jnp.all(use[tri], axis=1) & noncollinear)[:, None]).reshape(-1)
+
+    def overhead_cost(p):
+        q = jax.vmap(ft.partial(apply, jaxlie.SE3(p)))(X)
+        s = jnp.sum((w[:, None] * (rig.overhead.project(q) - pixels)) ** 2, axis=-1)
+        s = jnp.where((jnp.sum(q * b, axis=-1) > 0) & jnp.isfinite(s), s, limit)
+        return jnp.sum(jnp.where(use, jnp.minimum(s, limit), 0.0))
+
+    costs = jnp.where(ok, jax.vmap(overhead_cost)(params), jnp.inf)
+    T_overs = jax.vmap(lambda p: inverse(jaxlie.SE3(p)).wxyz_xyz)(params)
+    depth2 = jnp.sum(jnp.where(use, jnp.sum((X - T_over[None, 4:]) ** 2, -1), 0.0))
+    separation2 = _CONSENSUS_SEPARATION**2 * depth2 / jnp.maximum(jnp.sum(use), 1)
+    picks, picked_ok, available = [], [], ok
+    for _ in range(_CONSENSUS_CANDIDATES):
+        c = jnp.where(available, costs, jnp.inf)
+        pick = _one_hot_pick(jnp.arange(c.shape[0]) == jnp.argmin(c), T_overs)
+        picks.append(pick)
+        picked_ok.append(jnp.isfinite(jnp.min(c)))
+        far = jnp.sum((T_overs[:, 4:] - pick[None, 4:]) ** 2, -1) > separation2
+        available = available & far
+    return jnp.stack(picks), jnp.stack(picked_ok)
+
+
 def _overhead_consensus(T_place, T_over, data, rejected, rig, strategy, settings, active,
                         loss, bearings):  # fmt: skip
     """The robust refinement's last stage, a consensus search (MSAC) over the overhead
@@ -296,62 +340,23 @@ def _overhead_consensus(T_place, T_over, data, rejected, rig, strategy, settings
     in a wrong minimum that fits its inliers, because the rejection rounds had kept an
     overhead outlier or left out a clean overhead sighting: an inlier set no restart from
     those same inliers corrects. Here every overhead sighting present, rejected ones
-    included, takes part: P3P ([`jaxloc.p3p`][]) on every triplet of sightings of
-    distinct placements (`bearings (steps, 3, 3)`, the cycle's overhead bearings),
-    each candidate scored by its overhead sightings' [`truncated_cost`][]; the
-    `_CONSENSUS_CANDIDATES` best with distinct centres are each refined (robust `loss`
-    from the candidate, then plain least squares on its inliers: the overhead sightings
-    below `SIGHTING_LIMIT` there, and the mutual sightings not `rejected`). The refined
-    candidate with the lowest truncated cost on all data replaces the solution if that is
-    lower by `_SWAP_MARGIN` and it rejects at most `REJECTION_ROUNDS` sightings; one
-    that fits better only by rejecting more makes the solution doubtful (measured:
-    taking it made wrong poses consistent). Returns `(T_place, T_over, num_steps, taken,
-    converged, rejected, doubtful)`."""
+    included, takes part: the candidates of [`_consensus_candidates`][] are each refined
+    (robust `loss` from the candidate, then plain least squares on its inliers: the
+    overhead sightings below `SIGHTING_LIMIT` there, and the mutual sightings not
+    `rejected`). The refined candidate with the lowest [`truncated_cost`][] on all data
+    replaces the solution if that is lower by `_SWAP_MARGIN` and it rejects at most
+    `REJECTION_ROUNDS` sightings; one that fits better only by rejecting more makes the
+    solution doubtful (measured: taking it made wrong poses consistent). Returns
+    `(T_place, T_over, num_steps, taken, converged, rejected, doubtful)`."""
     max_steps, rtol, atol = settings
     sg = jax.lax.stop_gradient
     T_place, T_over, data, rig, bearings = sg((T_place, T_over, data, rig, bearings))
     steps = data.mutual_pixels.shape[0]
     limit = SIGHTING_LIMIT[rig.noise_model]
-    dtype = T_place.dtype
-    g = geometry(T_place, T_over, rig, strategy)
-    X = (matvec(g.R_body, g.markers) + g.p_body).reshape(-1, 3)  # markers in W
-    b = bearings.reshape(-1, 3)
-    w = data.overhead_weight.reshape(-1)
-    use = (w > 0) & jnp.all(jnp.isfinite(b), axis=-1)
-    X = jnp.where(use[:, None], X, 0.0)
-    b = jnp.where(use[:, None], b, jnp.array([0.0, 0.0, 1.0], dtype))
-    pixels = data.overhead_pixels.reshape(-1, 2)
+    starts, starts_ok = _consensus_candidates(T_place, T_over, data, rig, strategy, bearings)
+    mutual_inliers = without(data, rejected.mutual, jnp.zeros_like(rejected.overhead))
 
-    tri = _distinct_placement_triplets(strategy)
-    noncollinear, _, _ = collinearity_free(X[tri], jnp.finfo(dtype).eps)
-    roots = jax.vmap(p3p)(X[tri], b[tri])
-    params = roots.poses.wxyz_xyz.reshape(-1, 7)  # T_cam_world
-    ok = (roots.valid & (jnp.all(use[tri], axis=1) & noncollinear)[:, None]).reshape(-1)
-
-    def overhead_cost(p):
-        q = jax.vmap(jaxlie.SE3(p).apply)(X)
-        s = jnp.sum((w[:, None] * (rig.overhead.project(q) - pixels)) ** 2, axis=-1)
-        s = jnp.where((jnp.sum(q * b, axis=-1) > 0) & jnp.isfinite(s), s, limit)
-        return jnp.sum(jnp.where(use, jnp.minimum(s, limit), 0.0))
-
-    costs = jnp.where(ok, jax.vmap(overhead_cost)(params), jnp.inf)
-    centres = jax.vmap(lambda p: inverse(jaxlie.SE3(p)).translation())(params)
-    depth2 = jnp.sum(jnp.where(use, jnp.sum((X - T_over[None, 4:]) ** 2, -1), 0.0))
-    separation2 = _CONSENSUS_SEPARATION**2 * depth2 / jnp.maximum(jnp.sum(use), 1)
-    picks, picked_ok, available = [], [], ok
-    for _ in range(_CONSENSUS_CANDIDATES):
-        c = jnp.where(available, costs, jnp.inf)
-        hot = jnp.arange(c.shape[0]) == jnp.argmin(c)
-        picks.append(_one_hot_pick(hot, params))
-        picked_ok.append(jnp.isfinite(jnp.min(c)))
-        centre = _one_hot_pick(hot, centres)
-        available = available & (jnp.sum((centres - centre[None]) ** 2, -1) > separation2)
-    picks, picked_ok = jnp.stack(picks), jnp.stack(picked_ok) & active
-    no_overhead = jnp.zeros_like(rejected.overhead)
-    mutual_inliers = without(data, rejected.mutual, no_overhead)
-
-    def solve(p, lane_ok):
-        O = inverse(jaxlie.SE3(p)).wxyz_xyz
+    def solve(O, lane_ok):
         P, O, k1, _, _ = cycle_lm(T_place, O, mutual_inliers, rig, strategy, max_steps, rtol,
                                   atol, lane_ok, loss)  # fmt: skip
         _, s_o = sighting_squares(whitened(P, O, mutual_inliers, rig, strategy), steps)
@@ -366,7 +371,9 @@ def _overhead_consensus(T_place, T_over, data, rejected, rig, strategy, settings
         cost = jnp.where(lane_ok & determined & converged, cost, jnp.inf)
         return P, O, k1 + k2, converged, out_o, cost, count <= REJECTION_ROUNDS
 
-    P, O, num_steps, converged, out_o, cost, admissible = jax.vmap(solve)(picks, picked_ok)
+    P, O, num_steps, converged, out_o, cost, admissible = jax.vmap(solve)(
+        starts, starts_ok & active
+    )
     target = truncated_cost(T_place, T_over, data, rig, strategy) - _SWAP_MARGIN
     admitted = jnp.where(admissible, cost, jnp.inf)
     best = jnp.arange(cost.shape[0]) == jnp.argmin(admitted)
