@@ -438,7 +438,11 @@ def refine_cycle(
     again from there by plain least squares on the inliers. The statistic is the
     squared whitened residual at the robust solution in the first round, then the
     standardized one `r_i^T (I - P_i)^-1 r_i` (`P_i` the sighting's leverage) at each
-    plain fit. Then a swap search: each rejected sighting is restored in turn with
+    plain fit. Last, the overhead camera is solved again from its inlier sightings of
+    the fitted ground placements ([`jaxloc.solve_overhead_pose`][], its best candidate
+    and distinct runners-up), each refined to convergence on the inliers beside the
+    solution: the lowest chi-square wins (rejections can leave the camera a second
+    minimum). Then a swap search: each rejected sighting is restored in turn with
     another present sighting of the same robot rejected instead (screened by 4 steps
     each, the best solved fully), and the swap is taken if it lowers the cycle's
     truncated cost (every sighting's squared whitened norm capped at the sighting limit,
@@ -452,12 +456,12 @@ def refine_cycle(
     with at most 5 sightings rejected; one that needs more makes the estimate
     `ambiguous` (the rounds can keep an overhead outlier or reject a clean overhead
     sighting and leave C in a wrong minimum of those inliers). The estimate,
-    covariance, gates (chi-square and degrees of freedom over the inliers only) and
-    gradients (implicit, with the rejections held fixed) are those of the
-    maximum-likelihood estimate given the inliers; it is `ambiguous` if the closed
-    form's rival comes within the margin (on the difference of the robust costs of the
-    two minima) or the consensus search's better fit rejects too many. An outlier in a
-    sighting nothing else checks (a robot's pose seen in one image only, whose two sightings fix its
+    covariance, gates (chi-square and degrees of freedom over the inliers only),
+    `ambiguous` (a distinct minimum of the restarts within the
+    margin, or the closed form's rival, decided on the difference of the robust costs
+    of the two minima) and gradients (implicit, with the rejections held fixed) are those of
+    the maximum-likelihood estimate given the inliers. An outlier in a sighting nothing
+    else checks (a robot's pose seen in one image only, whose two sightings fix its
     rotation) cannot be told from its partner; rejecting either leaves that rotation
     undetermined: the cycle is `unobservable`. `rejected` names the rejected sightings
     (a [`jaxloc.RejectedSightings`][]; listed by [`jaxloc.rejected_sightings`][]);
