@@ -47,7 +47,7 @@ from ._cameras.presets import (
     R_BODY_PTZ as R_BODY_PTZ,
 )
 from ._core.batching import map_problems as map_problems
-from ._core.compiler import compiler_options as compiler_options
+from ._core.compiler import compiled_ahead as compiled_ahead, compiler_options as compiler_options
 from ._core.poses import (
     kabsch as kabsch,
     pose_from_opencv as pose_from_opencv,

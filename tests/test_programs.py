@@ -10,6 +10,7 @@ import textwrap
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jaxloc._core.programs import describe, program_key
 
 
@@ -110,3 +111,40 @@ def test_compiler_options_apply_at_the_top_level_only():
         np.testing.assert_allclose(y, eager, rtol=1e-15)
     lowered = f.lower(x)
     np.testing.assert_allclose(lowered.compile()(x), eager, rtol=1e-15)
+
+
+def test_compiled_ahead_compiles_chained_calls_without_running_them():
+    """`jaxloc.compiled_ahead`: inside the block an eager jaxloc call returns zeros of its
+    outputs' shapes (so a second call can take them as inputs) and runs nothing; after
+    it, the same calls run the programs compiled there, traced once, with the numbers of
+    plain calls."""
+    import jaxloc
+    from jaxloc._core import compiler
+
+    traces = []
+
+    def first(x):
+        traces.append("first")
+        return {"y": jnp.sin(x) * 2.0, "n": jnp.sum(x > 0.5)}
+
+    def second(out, scale):
+        traces.append("second")
+        return out["y"] * scale + out["n"]
+
+    f, g = compiler.jit(first), compiler.jit(second)
+    x = jnp.linspace(0.0, 1.0, 5)
+    with jaxloc.compiled_ahead():
+        out = f(x)
+        assert isinstance(out["y"], np.ndarray) and out["y"].shape == (5,)
+        assert out["n"].dtype == jnp.sum(x > 0.5).dtype and not np.any(out["y"])
+        z = g(out, jnp.asarray(3.0))
+        assert isinstance(z, np.ndarray) and not np.any(z)
+    assert traces == ["first", "second"]
+    np.testing.assert_allclose(g(f(x), jnp.asarray(3.0)), np.sin(x) * 6.0 + 2, rtol=1e-6)
+    assert traces == ["first", "second"]  # the calls reused the programs: no new trace
+    with pytest.raises(RuntimeError, match="do not nest"):
+        with jaxloc.compiled_ahead():
+            with jaxloc.compiled_ahead():
+                pass
+    y = f(x)  # a failed block leaves eager calls eager
+    assert not isinstance(y["y"], np.ndarray)

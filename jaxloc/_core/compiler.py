@@ -7,13 +7,16 @@ cycle's programs in about 60 % of the time and run them as fast (a first jitted
 options apply on the CPU backend only: [`compiler_options`][] gives none elsewhere.
 """
 
+import contextlib
 import functools as ft
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import equinox as eqx
 import jax
+import numpy as np
 
 
 #: XLA options of jaxloc's programs on the CPU backend. XLA:CPU's newer fusion emitters
@@ -76,10 +79,57 @@ class _Jitted:
             return self._jitted[top_level]
 
     def __call__(self, *args, **kwargs):
-        return self._get(_top_level())(*args, **kwargs)
+        top_level = _top_level()
+        ahead = getattr(_AHEAD, "pool", None)
+        if top_level and ahead is not None:
+            return _compile_in(ahead, self._get(True).lower(*args, **kwargs))
+        return self._get(top_level)(*args, **kwargs)
 
     def lower(self, *args, **kwargs):
         return self._get(True).lower(*args, **kwargs)
+
+
+_AHEAD = threading.local()
+
+
+def _compile_in(ahead: tuple[ThreadPoolExecutor, list[Future]], lowered) -> Any:
+    """Start compiling `lowered` (an `eqx` lowered program) in the pool; zeros of its
+    outputs' shapes stand in for what it would return."""
+    pool, pending = ahead
+    pending.append(pool.submit(lowered.compile))
+    zeros = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), lowered.lowered.out_info)
+    return lowered.postprocess(zeros)
+
+
+@contextlib.contextmanager
+def compiled_ahead(workers: int = 2) -> Iterator[None]:
+    """Compile the programs of several eager calls side by side, without running them.
+
+    Inside the block, a call of a [`jit`][] function outside any transformation (an eager
+    entry point such as `localize_cycle` or `refine_cycle`, in this thread) traces and
+    lowers its program, starts compiling it in one of `workers` threads and returns zeros
+    of its outputs' shapes and dtypes instead of running it. Calls whose inputs are an
+    earlier call's outputs can so be lowered before the earlier program is compiled.
+    Leaving the block waits for every compilation (and raises the first error). The same
+    calls made afterwards with arguments of the same shapes and static values run the
+    compiled programs (JAX keeps them per process, and in its persistent compilation
+    cache when one is set). XLA compiles outside Python's lock, so two programs compile
+    in about the time of the larger one.
+
+    Only jaxloc's `jit` functions are deferred: any other JAX operation inside the block
+    runs eagerly on the zeros, so keep only the calls to compile inside it.
+    """
+    if getattr(_AHEAD, "pool", None) is not None:
+        raise RuntimeError("`compiled_ahead` blocks do not nest.")
+    pending: list[Future] = []
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jaxloc-compile") as pool:
+        _AHEAD.pool = (pool, pending)
+        try:
+            yield
+        finally:
+            _AHEAD.pool = None
+    for future in pending:
+        future.result()
 
 
 def jit(fn: Callable | None = None, **kwargs) -> Any:

@@ -24,13 +24,15 @@ import dataclasses
 import os
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
+from jaxtyping import Array, Float
 
 from .._cameras.models import OmniCamera
 from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
-from .._core.compiler import jit
+from .._core.compiler import compiled_ahead, jit
 from .._core.files import atomic_write_json
 from .._core.poses import ypr_from_rotation
 from .._core.results import RESULTS, status_code, status_names
@@ -61,8 +63,10 @@ _SEES = {"C": GROUND, "C1": ("C2", "C3"), "C2": ("C1", "C3"), "C3": ("C1", "C2")
 def c1_mount(team: Team) -> np.ndarray:
     """`R_body_camera` of C1's calibrated camera: the PTZ mount `R_BODY_PTZ` times the
     head's pan and tilt (`R_base_optical = Ry(pan) Rx(tilt)`, jaxloc's PTZ convention)."""
-    R_base_optical = jaxlie.SO3.from_y_radians(team.pan) @ jaxlie.SO3.from_x_radians(team.tilt)
-    return R_BODY_PTZ @ np.asarray(R_base_optical.as_matrix())
+    cp, sp, ct, st = np.cos(team.pan), np.sin(team.pan), np.cos(team.tilt), np.sin(team.tilt)
+    R_y = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    R_x = np.array([[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]])
+    return R_BODY_PTZ @ R_y @ R_x
 
 
 def rig_for(team: Team) -> Rig:
@@ -219,6 +223,11 @@ def _localize(observations: CycleObservations, rig: Rig):
     return localize_cycle(observations, rig, throw=False)
 
 
+@jit
+def _ypr_deg(wxyz: Float[Array, "n 4"]) -> Float[Array, "n 3"]:
+    return jax.vmap(lambda q: ypr_from_rotation(jaxlie.SO3(q)))(wxyz)
+
+
 @dataclasses.dataclass
 class ImageLocalization:
     """Result of [`jaxloc.localize_images`][].
@@ -248,17 +257,19 @@ class ImageLocalization:
         poses = self.estimate.poses
         Tb = np.asarray(poses.T_world_body.wxyz_xyz)
         To = np.asarray(poses.T_world_overhead.wxyz_xyz)
+        ends = np.stack([To, Tb[-1, 0], Tb[-1, 1], Tb[-1, 2]])
+        ypr = np.asarray(_ypr_deg(jnp.asarray(ends[:, :4])))
+        cov = self.covariance
+        if cov is not None and bool(cov.ok):
+            cov_position, cov_rotation = np.asarray(cov.position), np.asarray(cov.rotation)
         out_poses: dict[str, Any] = {}
-        for n, (name, T) in enumerate([("C", To), ("C1", Tb[-1, 0]), ("C2", Tb[-1, 1]),
-                                       ("C3", Tb[-1, 2])]):  # fmt: skip
-            R = jaxlie.SO3(jnp.asarray(T[:4]))
+        for n, (name, T) in enumerate(zip(("C", "C1", "C2", "C3"), ends)):
             entry = {"position_m": T[4:].tolist(), "quaternion_wxyz": T[:4].tolist(),
-                     "ypr_deg": np.asarray(ypr_from_rotation(R)).tolist()}  # fmt: skip
+                     "ypr_deg": ypr[n].tolist()}  # fmt: skip
             if name == "C":
                 entry["frame"] = "optical (x right, y down, z forward)"
-            if self.covariance is not None and bool(self.covariance.ok):
-                P = np.asarray(self.covariance.position[n])
-                Q = np.asarray(self.covariance.rotation[n])
+            if cov is not None and bool(cov.ok):
+                P, Q = cov_position[n], cov_rotation[n]
                 entry["position_cov_m2"] = P.tolist()
                 entry["position_std_m"] = np.sqrt(np.maximum(np.diag(P), 0)).tolist()
                 entry["rotation_cov_rad2"] = Q.tolist()
@@ -360,6 +371,11 @@ def localize_images(
     detections = detect_team_images(team, images)
     observations = observations_from_detections(team, detections)
     rig = rig_for(team)
+    with compiled_ahead():  # the two programs compile side by side, then run below
+        placeholder = _localize(observations, rig)
+        if refine:
+            refine_cycle(observations, rig, placeholder, loss=loss, loss_scale=loss_scale,
+                         throw=False)  # fmt: skip
     closed = _localize(observations, rig)
     usable = (RESULTS.successful, RESULTS.inconsistent_fit) if refine else (RESULTS.successful,)
     if not any(bool(closed.result == r) for r in usable):

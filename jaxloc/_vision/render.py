@@ -141,7 +141,7 @@ def annulus_of(camera: OmniCamera, margin: float = 0.0) -> tuple[float, float, f
     for e in (float(camera.elevation_max), float(camera.elevation_min)):
         p = np.stack([np.cos(az) * math.cos(e), np.sin(az) * math.cos(e),
                       np.full_like(az, math.sin(e))], axis=-1)  # fmt: skip
-        uv = np.asarray(camera.project(jnp.asarray(p)))
+        uv = np.asarray(_project(camera, jnp.asarray(p)))
         radii.append(np.hypot(uv[:, 0] - float(camera.cx), uv[:, 1] - float(camera.cy)))
     r_in = float(np.min(radii[0])) - margin
     r_out = float(np.max(radii[1])) + margin
@@ -747,6 +747,12 @@ def _unproject1(camera: AbstractCamera, uv: Float[Array, "2"]) -> Float[Array, "
     return camera.unproject(uv)
 
 
+@jit
+def _project(camera: AbstractCamera, p: Float[Array, "n 3"]) -> Float[Array, "n 2"]:
+    # Jitted: called eagerly, a camera model is ~25 small programs to compile.
+    return camera.project(p)
+
+
 def sphere_center_pixel(
     camera: AbstractCamera, centroid: Float[ArrayLike, "2"], area: float, iterations: int = 3
 ) -> np.ndarray:
@@ -771,9 +777,10 @@ def sphere_center_pixel(
     probe = 0.01
     # Radii as arrays, not Python floats: a float is a static argument of the jitted
     # `_silhouettes`, and every marker's own radius would compile it anew.
-    poly, _, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0),
-                               jnp.asarray(10.0 * math.sin(probe), a.dtype))  # fmt: skip
-    a1, _ = _polygon_area_centroid(np.asarray(poly[0]))
+    poly, _, ok = (np.asarray(v) for v in _silhouettes(
+        camera, jnp.asarray(a[None] * 10.0), jnp.asarray(10.0 * math.sin(probe), a.dtype)
+    ))  # fmt: skip
+    a1, _ = _polygon_area_centroid(poly[0])
     if not bool(ok[0]) or a1 <= 0 or not area > 0:
         return c
     alpha = probe * math.sqrt(area / a1)
@@ -782,10 +789,11 @@ def sphere_center_pixel(
     r = 10.0 * math.sin(alpha)
     for _ in range(iterations):
         a = np.asarray(_unproject1(camera, jnp.asarray(x)))
-        poly, center, ok = _silhouettes(camera, jnp.asarray(a[None] * 10.0),
-                                        jnp.asarray(r, a.dtype))  # fmt: skip
+        poly, _, ok = (np.asarray(v) for v in _silhouettes(
+            camera, jnp.asarray(a[None] * 10.0), jnp.asarray(r, a.dtype)
+        ))  # fmt: skip
         if not bool(ok[0]):
             return c
-        _, cen = _polygon_area_centroid(np.asarray(poly[0]))
+        _, cen = _polygon_area_centroid(poly[0])
         x = x + (c - cen)
     return x
