@@ -9,7 +9,9 @@ track a case needs, are computed before the clock starts, except for the
 `simulate_cycle` case). Prints, per case, the first call's seconds and the median of
 `--calls` later calls (each `block_until_ready`). Cases: the eager entry points as a
 user calls them (jaxloc compiles them with `jaxloc.compiler_options()`), and
-`localize_cycle` inside the user's own `jax.jit`, without and with those options.
+`localize_cycle` inside the user's own `jax.jit`, without and with those options;
+`localize_cycle` then `refine_cycle` on its estimate, called plainly and with both
+programs compiled side by side first (`jaxloc.compiled_ahead`).
 """
 
 import argparse
@@ -38,6 +40,14 @@ CASES = {
         "jaxloc.Snapshot.of(obs, 0), jaxloc.OneStepPrior.height_prior(3.0, 0.3, 0.1))"
     ),
     "solve_overhead_pose": "lambda: jaxloc.solve_overhead_pose(X, b, throw=False)",
+    "localize_cycle then refine_cycle": (
+        "lambda: jaxloc.refine_cycle(obs, sc.rig, jaxloc.localize_cycle(obs, sc.rig, "
+        "throw=False), throw=False)"
+    ),
+    "the same in compiled_ahead": (
+        "compiled_ahead_once(lambda: jaxloc.refine_cycle(obs, sc.rig, "
+        "jaxloc.localize_cycle(obs, sc.rig, throw=False), throw=False))"
+    ),
     "jit(localize_cycle)": (
         "(lambda f: lambda: f(obs))(jax.jit(lambda o: jaxloc.localize_cycle(o, sc.rig, "
         "throw=False)))"
@@ -70,6 +80,18 @@ SCRIPT = textwrap.dedent(
         track = jaxloc.TrackScenario(sc)
         if case.startswith("track_cycles"):
             track_obs = jaxloc.simulate_track(track, jr.key(0), 2)[1]
+
+    def compiled_ahead_once(f):
+        # The first call compiles f's programs side by side (placeholders), then runs f.
+        done = []
+        def call():
+            if not done:
+                with jaxloc.compiled_ahead():
+                    f()
+                done.append(True)
+            return f()
+        return call
+
     f = eval(sys.argv[3])
     t = time.perf_counter()
     jax.block_until_ready(f())
