@@ -108,13 +108,21 @@ def compiled_ahead(workers: int = 2) -> Iterator[None]:
     Inside the block, a call of a [`jit`][] function outside any transformation (an eager
     entry point such as `localize_cycle` or `refine_cycle`, in this thread) traces and
     lowers its program, starts compiling it in one of `workers` threads and returns zeros
-    of its outputs' shapes and dtypes instead of running it. Calls whose inputs are an
-    earlier call's outputs can so be lowered before the earlier program is compiled.
-    Leaving the block waits for every compilation (and raises the first error). The same
-    calls made afterwards with arguments of the same shapes and static values run the
-    compiled programs (JAX keeps them per process, and in its persistent compilation
-    cache when one is set). XLA compiles outside Python's lock, so two programs compile
-    in about the time of the larger one.
+    of its outputs' shapes and dtypes instead of running it, so a call that takes an
+    earlier call's outputs is lowered before the earlier program is compiled. Leaving the
+    block waits for every compilation (and raises the first error); an exception inside
+    it is raised at once. The same calls made afterwards with arguments of the same
+    shapes and static values run the compiled programs (JAX keeps them per process, and
+    in its persistent compilation cache when one is set). XLA compiles outside Python's
+    lock, so two programs compile in about the time of the larger one:
+
+    ```python
+    with jaxloc.compiled_ahead():
+        placeholder = jaxloc.localize_cycle(obs, rig, throw=False)  # zeros
+        jaxloc.refine_cycle(obs, rig, placeholder, throw=False)
+    estimate = jaxloc.localize_cycle(obs, rig, throw=False)  # runs, compiled
+    refined = jaxloc.refine_cycle(obs, rig, estimate, throw=False)
+    ```
 
     Only jaxloc's `jit` functions are deferred: any other JAX operation inside the block
     runs eagerly on the zeros, so keep only the calls to compile inside it.
@@ -122,12 +130,16 @@ def compiled_ahead(workers: int = 2) -> Iterator[None]:
     if getattr(_AHEAD, "pool", None) is not None:
         raise RuntimeError("`compiled_ahead` blocks do not nest.")
     pending: list[Future] = []
-    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jaxloc-compile") as pool:
-        _AHEAD.pool = (pool, pending)
-        try:
-            yield
-        finally:
-            _AHEAD.pool = None
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="jaxloc-compile")
+    _AHEAD.pool = (pool, pending)
+    try:
+        yield
+    except BaseException:  # e.g. Ctrl-C: raised at once, not after the compilations
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    finally:
+        _AHEAD.pool = None
+    pool.shutdown(wait=True)
     for future in pending:
         future.result()
 
