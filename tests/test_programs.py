@@ -2,6 +2,7 @@
 next process instead of traced, the same numbers; the file name changes with everything
 that changes the trace."""
 
+import logging
 import os
 import subprocess
 import sys
@@ -140,8 +141,22 @@ def test_compiled_ahead_compiles_chained_calls_without_running_them():
         z = g(out, jnp.asarray(3.0))
         assert isinstance(z, np.ndarray) and not np.any(z)
     assert traces == ["first", "second"]
-    np.testing.assert_allclose(g(f(x), jnp.asarray(3.0)), np.sin(x) * 6.0 + 2, rtol=1e-6)
+    compiled = []
+
+    class Compilations(logging.Handler):
+        def emit(self, record):
+            if "Finished XLA compilation" in record.getMessage():
+                compiled.append(record.getMessage())
+
+    handler, logger = Compilations(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles():
+            np.testing.assert_allclose(g(f(x), jnp.asarray(3.0)), np.sin(x) * 6.0 + 2, rtol=1e-6)
+    finally:
+        logger.removeHandler(handler)
     assert traces == ["first", "second"]  # the calls reused the programs: no new trace
+    assert not [m for m in compiled if "first" in m or "second" in m], compiled  # nor compile
     with pytest.raises(RuntimeError, match="do not nest"):
         with jaxloc.compiled_ahead():
             with jaxloc.compiled_ahead():

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .._core.compiler import jit
 from .._core.numerics import safe_sqrt
 
 
@@ -349,3 +350,17 @@ class AbstractCamera(eqx.Module):
         included); NaN for a non-finite point.
         """
         return project_with_jacobian_autodiff(self, points_cam)
+
+
+@jit
+def compiled_project(camera: AbstractCamera, p: Float[Array, "*n 3"]) -> Float[Array, "*n 2"]:
+    """`camera.project(p)` compiled once per camera type and shape, for eager callers (the
+    image front end): run op by op, a camera model is ~25 small programs to compile."""
+    return camera.project(p)
+
+
+@jit
+def compiled_unproject(camera: AbstractCamera, uv: Float[Array, "*n 2"]) -> Float[Array, "*n 3"]:
+    """`camera.unproject(uv)` compiled once per camera type and shape, for eager callers:
+    run op by op, its undistortion loops compile again at every call."""
+    return camera.unproject(uv)

@@ -31,8 +31,8 @@ import jaxlie
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float
 
+from .._cameras.base import compiled_unproject
 from .._cameras.files import camera_to_dict
 from .._cameras.models import AbstractCamera, OmniCamera, PinholeCamera, PTZCamera, ZoomTable
 from .._core.compiler import jit
@@ -417,12 +417,6 @@ def _homography_pose(bearings: np.ndarray, obj: np.ndarray) -> np.ndarray:
     return np.asarray(T.wxyz_xyz)
 
 
-@jit
-def _unproject(camera: AbstractCamera, uv: Float[Array, "n 2"]) -> Float[Array, "n 3"]:
-    # Jitted once per shape: an eager `unproject` recompiles its undistortion loops.
-    return camera.unproject(uv)
-
-
 def _omni_from_theta(theta, f0, image_size, skew):
     # theta: (xi, fx, fy, cx, cy) / f0 except xi, (k1, k2, p1, p2), and skew / f0 when it
     # is estimated (10 entries; else `skew` is the fixed value).
@@ -518,7 +512,7 @@ def omni_initial_guess(
     T0 = []
     for c in views:
         ok = np.all(np.isfinite(c), -1)
-        b = np.asarray(_unproject(init_cam, jnp.asarray(np.where(ok[:, None], c, 0.0))))
+        b = np.asarray(compiled_unproject(init_cam, jnp.asarray(np.where(ok[:, None], c, 0.0))))
         T0.append(_homography_pose(b[ok], obj[ok]))
     return float(cx0), float(cy0), gamma, T0
 

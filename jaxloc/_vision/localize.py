@@ -30,6 +30,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._cameras.base import compiled_unproject
 from .._cameras.models import OmniCamera
 from .._cameras.presets import R_BODY_OMNI, R_BODY_OVERHEAD, R_BODY_PTZ
 from .._core.compiler import compiled_ahead, jit
@@ -63,10 +64,8 @@ _SEES = {"C": GROUND, "C1": ("C2", "C3"), "C2": ("C1", "C3"), "C3": ("C1", "C2")
 def c1_mount(team: Team) -> np.ndarray:
     """`R_body_camera` of C1's calibrated camera: the PTZ mount `R_BODY_PTZ` times the
     head's pan and tilt (`R_base_optical = Ry(pan) Rx(tilt)`, jaxloc's PTZ convention)."""
-    cp, sp, ct, st = np.cos(team.pan), np.sin(team.pan), np.cos(team.tilt), np.sin(team.tilt)
-    R_y = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
-    R_x = np.array([[1.0, 0.0, 0.0], [0.0, ct, -st], [0.0, st, ct]])
-    return R_BODY_PTZ @ R_y @ R_x
+    R_base_optical = jaxlie.SO3.from_y_radians(team.pan) @ jaxlie.SO3.from_x_radians(team.tilt)
+    return R_BODY_PTZ @ np.asarray(R_base_optical.as_matrix())
 
 
 def rig_for(team: Team) -> Rig:
@@ -183,7 +182,7 @@ def observations_from_detections(
                 if not dt.detected or dt.truncated:
                     continue
                 j = idx[t]
-                b = np.asarray(_unproject(team.cameras[obs], jnp.asarray(dt.pixel)))
+                b = np.asarray(compiled_unproject(team.cameras[obs], jnp.asarray(dt.pixel)))
                 mutual[k, i, j] = mounts[obs] @ b
                 mpix[k, i, j] = dt.pixel
         for t, dt in detections[(k, "C")].items():
@@ -191,7 +190,8 @@ def observations_from_detections(
             # overhead solve has redundancy; too few remaining placements raise below).
             if dt.detected and not dt.truncated:
                 j = idx[t]
-                over[k, j] = np.asarray(_unproject(team.cameras["C"], jnp.asarray(dt.pixel)))
+                pixel = jnp.asarray(dt.pixel)
+                over[k, j] = np.asarray(compiled_unproject(team.cameras["C"], pixel))
                 over_vis[k, j] = True
                 opix[k, j] = dt.pixel
     # Distinct robot placements seen by C (robots that did not move keep theirs).
@@ -210,12 +210,6 @@ def observations_from_detections(
         strategy=team.strategy, overhead_visible=jnp.asarray(over_vis),
         mutual_pixels=jnp.asarray(mpix), overhead_pixels=jnp.asarray(opix),
     )  # fmt: skip
-
-
-@jit
-def _unproject(camera, uv):
-    # Jitted: an eager `unproject` recompiles its undistortion loops at every call.
-    return camera.unproject(uv)
 
 
 @jit

@@ -41,6 +41,7 @@ import jaxlie
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .._cameras.base import compiled_project, compiled_unproject
 from .._cameras.models import AbstractCamera, OmniCamera
 from .._core.compiler import jit
 from .._cycle.sightings import in_body, marker_in_world, mutual_points
@@ -141,7 +142,7 @@ def annulus_of(camera: OmniCamera, margin: float = 0.0) -> tuple[float, float, f
     for e in (float(camera.elevation_max), float(camera.elevation_min)):
         p = np.stack([np.cos(az) * math.cos(e), np.sin(az) * math.cos(e),
                       np.full_like(az, math.sin(e))], axis=-1)  # fmt: skip
-        uv = np.asarray(_project(camera, jnp.asarray(p)))
+        uv = np.asarray(compiled_project(camera, jnp.asarray(p)))
         radii.append(np.hypot(uv[:, 0] - float(camera.cx), uv[:, 1] - float(camera.cy)))
     r_in = float(np.min(radii[0])) - margin
     r_out = float(np.max(radii[1])) + margin
@@ -742,17 +743,6 @@ def _polygon_area_centroid(poly: np.ndarray) -> tuple[float, np.ndarray]:
     return abs(a), np.array([cx, cy])
 
 
-@jit
-def _unproject1(camera: AbstractCamera, uv: Float[Array, "2"]) -> Float[Array, "3"]:
-    return camera.unproject(uv)
-
-
-@jit
-def _project(camera: AbstractCamera, p: Float[Array, "n 3"]) -> Float[Array, "n 2"]:
-    # Jitted: called eagerly, a camera model is ~25 small programs to compile.
-    return camera.project(p)
-
-
 def sphere_center_pixel(
     camera: AbstractCamera, centroid: Float[ArrayLike, "2"], area: float, iterations: int = 3
 ) -> np.ndarray:
@@ -773,7 +763,7 @@ def sphere_center_pixel(
     """
     c = np.asarray(centroid, np.float64)
     x = c.copy()
-    a = np.asarray(_unproject1(camera, jnp.asarray(x)))
+    a = np.asarray(compiled_unproject(camera, jnp.asarray(x)))
     probe = 0.01
     # Radii as arrays, not Python floats: a float is a static argument of the jitted
     # `_silhouettes`, and every marker's own radius would compile it anew.
@@ -788,7 +778,7 @@ def sphere_center_pixel(
         return c
     r = 10.0 * math.sin(alpha)
     for _ in range(iterations):
-        a = np.asarray(_unproject1(camera, jnp.asarray(x)))
+        a = np.asarray(compiled_unproject(camera, jnp.asarray(x)))
         poly, _, ok = (np.asarray(v) for v in _silhouettes(
             camera, jnp.asarray(a[None] * 10.0), jnp.asarray(r, a.dtype)
         ))  # fmt: skip
