@@ -128,6 +128,36 @@ def test_each_sighting_removed_in_turn(strategy):
     assert ok.sum() == (32 if strategy == "sequential" else 15), ok.sum()
 
 
+def test_two_stand_in_bearings_are_searched_jointly():
+    """Concurrent, noiseless: C1 misses one robot at each of two steps, so the closed
+    form can put both bearings on their cones only (`too_few_points`, both marked
+    stand-ins); the refinement searches both azimuths together (6 x 6 turns, with the
+    overhead camera as given and flipped). Every pair of this cycle ends exact and
+    `successful` or not `successful` (never a wrong pose); measured, 9 of the 12 are
+    found exactly (the other three stop unconverged or inconsistent on this stiff,
+    noiseless problem). Before the joint search all 12 stayed `too_few_points`."""
+    pairs = [((k1, 0, b1), (k2, 0, b2))
+             for k1 in range(3) for k2 in range(k1 + 1, 3) for b1 in (1, 2) for b2 in (1, 2)]
+    m = np.zeros((len(pairs), 3, 3, 3), bool)
+    for n, pair in enumerate(pairs):
+        for idx in pair:
+            m[(n,) + idx] = True
+    o = np.zeros((len(pairs), 3, 3), bool)
+    truth, visible, closed, refined = _each_removed("concurrent", jnp.asarray(m), jnp.asarray(o))
+    assert bool(visible)
+    found = 0
+    for n, pair in enumerate(pairs):
+        c = jax.tree.map(lambda x, n=n: x[n], closed)
+        r = jax.tree.map(lambda x, n=n: x[n], refined)
+        assert c.result == RESULTS.too_few_points, pair
+        assert np.array_equal(np.argwhere(np.asarray(c.stand_in)), pair), pair
+        if r.result == RESULTS.successful:
+            found += 1
+            pos, rot = _pose_error(r.poses, truth.poses)
+            assert pos < 1e-8 and rot < 1e-6, (pair, pos, rot)
+    assert found >= 9, found
+
+
 @ft.partial(jax.jit, static_argnames="strategy")
 def _random_missing(strategy, keys, probability):
     base = jaxloc.Scenario.paper(strategy)
@@ -155,9 +185,9 @@ def test_random_missing_sightings_never_a_wrong_pose(strategy):
         assert np.all(nees < WRONG_POSE_NEES), (stage, nees.max())
     observable = vis & out["observable"]
     # Concurrent: a missing bearing of C1 (a quarter of the cycles) is searched on its
-    # cone (see test_each_sighting_removed_in_turn); some of those are `ambiguous`, and two
-    # such bearings stay `too_few_points` (47 of 57 localized here;
-    # the bound was 0.6 before the search).
+    # cone (see test_each_sighting_removed_in_turn; two such bearings together since
+    # PAIR_AZIMUTH_STARTS); some of those are `ambiguous` (the bound was 0.6 before the
+    # search).
     localized = np.mean(out["refined"][observable] == 0)
     assert localized > (0.9 if strategy == "sequential" else 0.8), localized
     # No successful estimate on a cycle whose measurements do not determine it.
@@ -413,8 +443,11 @@ def test_azimuth_starts_turn_the_stand_in_formation():
     truth, _, _ = jax.jit(jaxloc.simulate_cycle)(scenario, jr.key(3))
     T_place, T_over = estimate_placements(truth.poses, "concurrent")
     stand_in = jnp.zeros((3, 3, 3), bool).at[1, 0, 2].set(True)  # C1 missing C3 at step 1
-    T, O, active = azimuth_starts(T_place, T_over, stand_in, "concurrent", count=4)
-    assert T.shape == (7,) + T_place.shape and O.shape == (7, 7) and bool(np.all(active))
+    T, O, active = azimuth_starts(T_place, T_over, stand_in, "concurrent", count=4, pair_count=4)
+    # 2 x 4 - 1 starts for one stand-in, then 2 x 4^2 - 1 for two (inactive here).
+    assert T.shape == (38,) + T_place.shape and O.shape == (38, 7)
+    assert bool(np.all(active[:7])) and not np.any(active[7:])
+    T, O = T[:7], O[:7]
     ids = jaxloc.placement_ids("concurrent")
     a, b, c = ids[1, 0], ids[1, 2], ids[1, 1]
     p, q = np.asarray(T_place)[:, 4:], np.asarray(T)[:, :, 4:]
@@ -434,6 +467,28 @@ def test_azimuth_starts_turn_the_stand_in_formation():
     assert np.all(np.linalg.norm(np.asarray(O)[3:, 4:] - np.asarray(T_over)[4:], axis=-1) > 0.1)
     _, _, none = azimuth_starts(T_place, T_over, jnp.zeros((3, 3, 3), bool), "concurrent")
     assert not np.any(none)
+    # A second stand-in (C1 missing C2 at step 2): every pair of turns, step 1's movers
+    # as above, step 2's turned by 90 degrees per m2 about the line from C1 to C3.
+    two = stand_in.at[2, 0, 1].set(True)
+    T2, O2, active2 = azimuth_starts(T_place, T_over, two, "concurrent", count=4, pair_count=4)
+    assert not np.any(active2[:7]) and bool(np.all(active2[7:]))
+    T2, O2 = T2[7:], O2[7:]
+    a2, b2, c2 = ids[2, 0], ids[2, 1], ids[2, 2]
+    axis2 = (p[c2] - p[a2]) / np.linalg.norm(p[c2] - p[a2])
+    r2 = (p[b2] - p[a2]) - np.dot(p[b2] - p[a2], axis2) * axis2
+    for m1 in range(4):
+        for m2 in range(4):
+            lane = 4 * m1 + m2 - 1
+            if lane < 0:
+                continue
+            x = np.asarray(T2[lane])
+            one = np.asarray(T[m1 - 1] if m1 else T_place)  # the one-stand-in turn m1
+            np.testing.assert_allclose(x[[b, c]], one[[b, c]], atol=1e-12)
+            y = (x[b2, 4:] - p[a2]) - np.dot(x[b2, 4:] - p[a2], axis2) * axis2
+            turn = np.degrees(np.arctan2(np.dot(np.cross(r2, y), axis2), np.dot(r2, y)))
+            np.testing.assert_allclose((turn - 90 * m2 + 180) % 360 - 180, 0, atol=1e-9)
+            np.testing.assert_allclose(np.asarray(O2[lane]), np.asarray(T_over), atol=1e-12)
+    np.testing.assert_allclose(np.asarray(O2[15:]), np.broadcast_to(O[3], (16, 7)), atol=1e-12)
 
 
 def test_a_stand_in_is_not_searched_on_invalid_input():

@@ -55,7 +55,7 @@ from .._model.measurements import (
     whitened_with_jacobian,
     without,
 )
-from .azimuth import azimuth_starts
+from .azimuth import azimuth_starts, SEARCHED_STAND_INS
 from .kernel import cycle_lm, multi_start, NEGLIGIBLE_DECREASE, position_scale, retract
 from .robust import robust_stages
 
@@ -205,9 +205,10 @@ def _start(estimate: CycleEstimate, strategy: str, multi_start: bool):
     refinement may run: the estimate is a usable start, successful or only flagged by the
     fit gate (a refinement may find the consistent minimum the closed form missed),
     `ambiguous` by the gates with its rival minima as the other starts, or (for the
-    solver with a `multi_start`) `too_few_points` with one `stand_in` bearing, whose
-    azimuth the starts search (the multi-start decides). Two stand-ins are not searched:
-    measured, a search over the first one's azimuth marked wrong poses `successful`."""
+    solver with a `multi_start`) `too_few_points` with one or two `stand_in` bearings,
+    whose azimuths the starts search jointly (the multi-start decides). Measured, a
+    search over the first of two stand-ins' azimuths alone marked wrong poses
+    `successful`; a cycle with three stays `too_few_points`."""
     T0_place, T0_over = estimate_placements(estimate.poses, strategy)
     finite = jnp.all(jnp.isfinite(T0_place)) & jnp.all(jnp.isfinite(T0_over))
     ident = jnp.zeros(7, T0_place.dtype).at[0].set(1.0)
@@ -220,7 +221,8 @@ def _start(estimate: CycleEstimate, strategy: str, multi_start: bool):
         rival = estimate.checks.solver_result == RESULTS.successful
         usable = usable | ((estimate.result == RESULTS.ambiguous) & rival)
     if multi_start and estimate.stand_in is not None:
-        usable = usable | (jnp.sum(estimate.stand_in) == 1)
+        searched = jnp.sum(estimate.stand_in)
+        usable = usable | ((searched >= 1) & (searched <= SEARCHED_STAND_INS))
     return T0_place, T0_over, finite & usable
 
 
@@ -421,9 +423,10 @@ def refine_cycle(
     (see `jaxloc._refine.azimuth`), refines every start to convergence and keeps the
     best; the multi-start rule above decides `ambiguous`, with a margin of 9
     (`jaxloc._model.gates.STAND_IN_MARGIN`) instead of 4: these minima are discrete
-    hypotheses the data weigh weakly. Two stand-in bearings are not searched (the
-    result stays `too_few_points`): measured, a search let wrong poses through.
-    `stand_in` is copied to the refined estimate.
+    hypotheses the data weigh weakly. Two stand-in bearings (C1 missing a robot at two
+    steps) are searched jointly, every pair of their turns by 6 angles (71 starts); with
+    three the result stays `too_few_points`. `stand_in` is copied to the refined
+    estimate.
 
     **Robust refinement.** With a `loss`, the refinement first minimises `sum_i
     rho(|r_i|^2)` over the pixel sightings `i` (each a block of two whitened residuals;
